@@ -1,0 +1,207 @@
+"""Add-on preferences: where the engine's Python packages (torch, numba, ...) come from.
+
+Blender ships its own Python with numpy but without torch. The add-on finds torch in one
+of two folders, both *appended* to ``sys.path`` (so Blender's bundled numpy keeps
+precedence) on register and whenever the setting changes:
+
+1. **Python packages path**: the ``site-packages`` folder of an existing environment
+   with the same Python minor version as Blender (e.g. a project ``.venv``), or
+2. the extension's own user folder ``<extensions user dir>/bullettime4d/site-packages``,
+   filled by the *Install Dependencies* button, which runs
+   ``<Blender's python> -m pip install --target <that folder> <REQUIREMENTS>``.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import bpy
+from bpy.props import StringProperty
+from bpy.types import AddonPreferences, Operator
+
+ADDON_PACKAGE = __package__.rpartition(".")[0]
+
+# What the engine needs beyond Blender's bundled numpy (kept in step with requirements.txt).
+REQUIREMENTS = (
+    "torch==2.13.0",
+    "numba==0.68.1",
+    "OpenEXR==3.5.3",
+    "trimesh==5.2.0",
+    "pytorch-msssim==1.0.0",
+    "pillow==13.0.0",
+)
+
+_added_paths: list[str] = []  # the sys.path entries this add-on appended
+
+
+def user_site_packages(create: bool = False) -> str | None:
+    """The extension's private site-packages folder, or None outside the extension system."""
+    try:
+        return bpy.utils.extension_path_user(ADDON_PACKAGE, path="site-packages", create=create)
+    except (ValueError, TypeError):  # not loaded as bl_ext.<repo>.bullettime4d
+        return None
+
+
+def get_prefs(context=None):
+    context = context or bpy.context
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
+    return addon.preferences if addon else None
+
+
+def wanted_paths(python_path: str) -> list[str]:
+    """Existing folders that should be on sys.path: the user's path, then our own folder."""
+    out = []
+    for p in (python_path, user_site_packages()):
+        if p:
+            p = str(Path(bpy.path.abspath(p)).expanduser().resolve())
+            if Path(p).is_dir() and p not in out:
+                out.append(p)
+    return out
+
+
+def sync_sys_path(python_path: str | None = None) -> list[str]:
+    """Make this add-on's entries on sys.path match the preferences. Returns them."""
+    if python_path is None:
+        prefs = get_prefs()
+        python_path = prefs.python_path if prefs else ""
+    for p in _added_paths:
+        while p in sys.path:
+            sys.path.remove(p)
+    _added_paths.clear()
+    for p in wanted_paths(python_path):
+        if p not in sys.path:
+            sys.path.append(p)
+            _added_paths.append(p)
+    importlib.invalidate_caches()
+    return list(_added_paths)
+
+
+def torch_location() -> str | None:
+    """Where ``import torch`` would load from (without importing it), or None."""
+    try:
+        spec = importlib.util.find_spec("torch")
+    except (ImportError, ValueError):
+        return None
+    return None if spec is None or not spec.origin else str(Path(spec.origin).parent)
+
+
+def pip_install_command(target: str, packages=REQUIREMENTS, extra_args: str = "") -> list[str]:
+    """The pip command the Install Dependencies button runs."""
+    return [sys.executable, "-m", "pip", "install", "--upgrade", "--no-input",
+            "--target", target, *shlex.split(extra_args), *packages]
+
+
+def _on_path_changed(self, context):
+    sync_sys_path(self.python_path)
+
+
+class BT4D_AddonPreferences(AddonPreferences):
+    bl_idname = ADDON_PACKAGE
+
+    python_path: StringProperty(
+        name="Python Packages Path", subtype="DIR_PATH", update=_on_path_changed,
+        description="site-packages folder of an environment that has torch (same Python version as "
+                    "Blender); appended to sys.path")
+    pip_args: StringProperty(
+        name="Extra pip Arguments", default="",
+        description="Added to the pip command, e.g. --index-url https://download.pytorch.org/whl/cu128")
+    last_install_log: StringProperty(name="Last Install", default="")
+
+    def draw(self, context):
+        layout = self.layout
+        layout.prop(self, "python_path")
+        box = layout.box()
+        own = user_site_packages()
+        box.label(text=f"Add-on packages folder: {own or '(only when installed as an extension)'}")
+        box.prop(self, "pip_args")
+        box.operator(BT4D_OT_install_dependencies.bl_idname, icon="IMPORT")
+        if self.last_install_log:
+            box.label(text=self.last_install_log)
+        loc = torch_location()
+        layout.label(text=f"torch: {loc}" if loc else "torch: not found",
+                     icon="CHECKMARK" if loc else "ERROR")
+
+
+class BT4D_OT_install_dependencies(Operator):
+    """Install torch and the engine's other packages into the add-on's own folder with pip"""
+
+    bl_idname = "bt4d.install_dependencies"
+    bl_label = "Install Dependencies"
+    bl_options = {"REGISTER", "INTERNAL"}
+
+    packages: StringProperty(
+        name="Packages", default=" ".join(REQUIREMENTS),
+        description="Space-separated pip requirement specifiers")
+    extra_args: StringProperty(name="Extra Arguments", default="",
+                               description="Added to the preferences' pip arguments")
+    target: StringProperty(name="Target", subtype="DIR_PATH", default="",
+                           description="Install folder (default: the add-on's site-packages folder)")
+
+    _proc = None
+    _timer = None
+
+    def _command(self, context) -> list[str] | None:
+        target = self.target or user_site_packages(create=True)
+        if not target:
+            self.report({"ERROR"}, "BulletTime4D is not installed as an extension: "
+                                   "set a Python packages path in the preferences instead")
+            return None
+        Path(target).mkdir(parents=True, exist_ok=True)
+        prefs = get_prefs(context)
+        extra = " ".join(a for a in ((prefs.pip_args if prefs else ""), self.extra_args) if a)
+        return pip_install_command(target, self.packages.split(), extra)
+
+    def _finish(self, context, returncode: int, output: str) -> set[str]:
+        prefs = get_prefs(context)
+        tail = (output or "").strip().splitlines()[-1:] or [""]
+        msg = ("Installed: " if returncode == 0 else f"pip failed ({returncode}): ") + tail[0][:200]
+        if prefs:
+            prefs.last_install_log = msg
+        sync_sys_path()
+        if returncode != 0:
+            self.report({"ERROR"}, msg)
+            return {"CANCELLED"}
+        self.report({"INFO"}, msg)
+        return {"FINISHED"}
+
+    def execute(self, context):  # blocking: scripts and tests
+        cmd = self._command(context)
+        if cmd is None:
+            return {"CANCELLED"}
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        return self._finish(context, proc.returncode, proc.stdout)
+
+    def invoke(self, context, event):  # non-blocking: the UI keeps responding while pip runs
+        cmd = self._command(context)
+        if cmd is None:
+            return {"CANCELLED"}
+        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self._timer = context.window_manager.event_timer_add(0.5, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        self.report({"INFO"}, "Installing dependencies with pip...")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type != "TIMER" or self._proc.poll() is None:
+            return {"PASS_THROUGH"}
+        context.window_manager.event_timer_remove(self._timer)
+        output = self._proc.stdout.read() if self._proc.stdout else ""
+        return self._finish(context, self._proc.returncode, output)
+
+
+classes = (BT4D_AddonPreferences, BT4D_OT_install_dependencies)
+
+
+def register():
+    sync_sys_path()
+
+
+def unregister():
+    for p in _added_paths:
+        while p in sys.path:
+            sys.path.remove(p)
+    _added_paths.clear()

@@ -1,0 +1,72 @@
+"""``Scene.bt4d``: the capture that was imported and the reconstruction settings.
+
+Capture summary fields are written by ``bt4d.import_capture``; the reconstruction
+settings (preset, seconds, output_dir, device, use_spikes) are read by the training
+operator.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
+from bpy.types import PropertyGroup
+
+PRESET_ITEMS = (
+    ("fast", "Fast", "Few iterations, small model: a first look in minutes"),
+    ("balanced", "Balanced", "The default trade-off between time and quality"),
+    ("quality", "Quality", "More iterations and Gaussians; best results, slowest"),
+)
+DEVICE_ITEMS = (
+    ("auto", "Auto", "CUDA when torch sees a GPU, otherwise the CPU"),
+    ("cpu", "CPU", "Train on the CPU (slow but always available)"),
+    ("cuda", "CUDA", "Train on the first CUDA GPU"),
+)
+
+
+class BT4D_SceneSettings(PropertyGroup):
+    # -- capture (filled by bt4d.import_capture) ---------------------------------------
+    capture_dir: StringProperty(
+        name="Capture", subtype="DIR_PATH",
+        description="Folder of the imported capture (holds transforms.json)")
+    capture_name: StringProperty(name="Name", description="Name of the imported capture")
+    capture_collection: PointerProperty(
+        name="Collection", type=bpy.types.Collection,
+        description="Collection holding the capture's cameras")
+    capture_format: StringProperty(name="Format", description="Capture layout (bt4d, nerfstudio, dnerf)")
+    num_cameras: IntProperty(name="Cameras", min=0)
+    num_frames: IntProperty(name="Frames", min=0, description="Training RGB frames")
+    num_eval_frames: IntProperty(name="Eval Frames", min=0, description="Held-out frames")
+    num_spike_streams: IntProperty(name="Spike Streams", min=0)
+    spike_summary: StringProperty(name="Spikes", description="Spike streams: camera, rate, frames")
+    time_start: FloatProperty(name="Start", unit="TIME_ABSOLUTE", description="Capture start time (s)")
+    time_end: FloatProperty(name="End", unit="TIME_ABSOLUTE", description="Capture end time (s)")
+    main_camera: StringProperty(name="Main Camera", description="Train camera that sets the scene resolution")
+
+    # -- reconstruction settings (read by the training operator) -----------------------
+    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="balanced")
+    seconds: FloatProperty(
+        name="Time Budget", default=600.0, min=5.0, soft_max=7200.0, unit="TIME_ABSOLUTE",
+        description="Wall-clock training budget in seconds")
+    output_dir: StringProperty(
+        name="Output", subtype="DIR_PATH", default="//bt4d_runs/",
+        description="Where runs (checkpoints, exports, renders) are written")
+    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto")
+    use_spikes: BoolProperty(
+        name="Use Spikes", default=True,
+        description="Train the fine (spike-guided) deformation branch when the capture has a spike stream")
+
+    @property
+    def has_capture(self) -> bool:
+        return bool(self.capture_dir)
+
+
+classes = (BT4D_SceneSettings,)
+
+
+def register():
+    bpy.types.Scene.bt4d = PointerProperty(type=BT4D_SceneSettings)
+
+
+def unregister():
+    if hasattr(bpy.types.Scene, "bt4d"):
+        del bpy.types.Scene.bt4d

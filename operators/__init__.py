@@ -1,0 +1,32 @@
+"""One module per user action (``bpy.ops.bt4d.*``). Each module defines ``classes``.
+
+Add a module by importing it here and listing it in ``MODULES``.
+"""
+from __future__ import annotations
+
+import bpy
+
+from . import import_capture
+
+MODULES = (import_capture,)
+
+
+def _classes():
+    for mod in MODULES:
+        yield from mod.classes
+
+
+def register():
+    for cls in _classes():
+        bpy.utils.register_class(cls)
+    for mod in MODULES:
+        if hasattr(mod, "register"):
+            mod.register()
+
+
+def unregister():
+    for mod in reversed(MODULES):
+        if hasattr(mod, "unregister"):
+            mod.unregister()
+    for cls in reversed(list(_classes())):
+        bpy.utils.unregister_class(cls)

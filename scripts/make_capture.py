@@ -1,0 +1,433 @@
+#!/usr/bin/env python
+"""Render a synthetic hybrid capture (stereo RGB + spike camera + eval camera) with Cycles.
+
+Run with the project's Python (``bpy`` is the Blender module)::
+
+    .venv/bin/python scripts/make_capture.py --out demo_capture
+    .venv/bin/python scripts/make_capture.py --out /tmp/big --preset large
+
+Scene (Z up, metres): a brick back wall and a checker/noise floor (static texture to
+reconstruct), a spinning checker cube, a striped ball swinging across the view in front of
+it (about 10-20 px per 30 FPS frame at 160 px wide) and a noise-textured torus spinning
+and bobbing, lit by a sharp sun plus an even sky.
+
+Rig (CAPTURE_FORMAT.md): ``rgb0``/``rgb1`` stereo pair (30 FPS, baseline ~11 % of the
+distance to the subject), ``spike0`` co-located with ``rgb0`` (same pose and field of
+view, lower resolution, 20 kHz), ``eval0`` held out, above and between the pair, at
+``--eval-fps``. RGB/eval frames are 8-bit sRGB PNGs rendered with the Standard view
+transform (plain sRGB encoding, no tone curve). The spike stream is simulated from
+linear light rendered at the spike resolution at ``--light-hz``:
+``engine.spike_sim.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
+gain map and a little dark current; linear white (1.0) fires every ``1/light_scale``
+frames. No ``points.ply`` is written, so the engine's stereo initialisation is exercised.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+import bpy  # noqa: E402
+
+from bt4d_addon import scene_build  # noqa: E402
+from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
+
+PRESETS = {
+    # ~0.2 s, shipped with the add-on (<= 6 MB)
+    "demo": dict(seconds=0.2, rgb_size=(160, 120), spike_size=(80, 60), eval_fps=300.0,
+                 samples=16, light_hz=1000.0),
+    # a heavier benchmark-like capture
+    "large": dict(seconds=0.5, rgb_size=(320, 240), spike_size=(160, 120), eval_fps=300.0,
+                  samples=32, light_hz=2000.0),
+}
+RGB_FPS = 30.0
+SPIKE_HZ = 20000.0
+HFOV_DEG = 54.0
+TARGET = (0.0, 0.3, 0.9)
+CAMERA_EYES = {
+    "rgb0": (-0.3, -5.0, 1.4),
+    "rgb1": (0.3, -5.0, 1.4),
+    "eval0": (0.0, -4.7, 2.2),
+}
+# spike model defaults (recorded in transforms.json under spike_streams[i]["sim"])
+LIGHT_SCALE = 1.0 / 3.0   # light per spike frame for linear luminance 1.0: white fires every 3rd frame
+GAIN_STD = 0.03
+DARK_CURRENT = 0.002
+PHOTONS_PER_THRESHOLD = 1000.0  # Poisson shot noise on each frame's charge
+
+
+# ----------------------------------------------------------------------------- motion
+
+def object_poses(t: float) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """World location and XYZ Euler rotation (radians) of each moving object at time t (s)."""
+    ball_x = 1.6 * math.sin(10.0 * t - 1.1)  # peak 16 m/s ~ 16 px per 30 FPS frame at 160 px
+    return {
+        "cube": ((-0.75, 0.5, 0.95 + 0.15 * math.sin(9.0 * t)), (0.35, 25.0 * t, 0.6 + 18.0 * t)),
+        "ball": ((ball_x, -0.6, 1.25 + 0.25 * math.cos(12.0 * t)), (0.0, 20.0 * t, 0.0)),
+        "torus": ((1.05, 0.6, 0.75 + 0.35 * math.sin(14.0 * t + 0.5)), (1.1, 0.0, 20.0 * t)),
+    }
+
+
+# ----------------------------------------------------------------------------- scene
+
+def _material(name: str, build) -> bpy.types.Material:
+    mat = bpy.data.materials.new(name)
+    if mat.node_tree is None:  # Blender < 5 creates materials without nodes
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    bsdf.inputs["Roughness"].default_value = 0.0
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    colour = build(nt)
+    nt.links.new(colour, bsdf.inputs["Color"])
+    return mat
+
+
+def _mix(nt, a, b, fac, blend="MIX"):
+    mix = nt.nodes.new("ShaderNodeMix")
+    mix.data_type = "RGBA"
+    mix.blend_type = blend
+    if isinstance(fac, float):
+        mix.inputs[0].default_value = fac
+    else:
+        nt.links.new(fac, mix.inputs[0])
+    nt.links.new(a, mix.inputs[6])
+    nt.links.new(b, mix.inputs[7])
+    return mix.outputs[2]
+
+
+def _bricks(nt):
+    tex = nt.nodes.new("ShaderNodeTexBrick")
+    tex.inputs["Color1"].default_value = (0.55, 0.18, 0.09, 1)
+    tex.inputs["Color2"].default_value = (0.75, 0.45, 0.25, 1)
+    tex.inputs["Mortar"].default_value = (0.85, 0.85, 0.8, 1)
+    tex.inputs["Scale"].default_value = 6.0
+    noise = nt.nodes.new("ShaderNodeTexNoise")
+    noise.inputs["Scale"].default_value = 25.0
+    return _mix(nt, tex.outputs["Color"], noise.outputs["Color"], 0.15, "MULTIPLY")
+
+
+def _floor(nt):
+    tex = nt.nodes.new("ShaderNodeTexChecker")
+    tex.inputs["Color1"].default_value = (0.8, 0.8, 0.75, 1)
+    tex.inputs["Color2"].default_value = (0.12, 0.2, 0.35, 1)
+    tex.inputs["Scale"].default_value = 8.0
+    noise = nt.nodes.new("ShaderNodeTexNoise")
+    noise.inputs["Scale"].default_value = 12.0
+    noise.inputs["Detail"].default_value = 6.0
+    return _mix(nt, tex.outputs["Color"], noise.outputs["Color"], 0.35, "OVERLAY")
+
+
+def _cube(nt):
+    tex = nt.nodes.new("ShaderNodeTexChecker")
+    tex.inputs["Color1"].default_value = (0.9, 0.15, 0.1, 1)
+    tex.inputs["Color2"].default_value = (0.95, 0.85, 0.2, 1)
+    tex.inputs["Scale"].default_value = 4.0
+    return tex.outputs["Color"]
+
+
+def _ball(nt):
+    tex = nt.nodes.new("ShaderNodeTexWave")
+    tex.wave_type = "BANDS"
+    tex.inputs["Scale"].default_value = 3.0
+    tex.inputs["Distortion"].default_value = 2.0
+    ramp = nt.nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].color = (0.05, 0.15, 0.8, 1)
+    ramp.color_ramp.elements[1].color = (0.95, 0.95, 0.95, 1)
+    nt.links.new(tex.outputs["Fac"], ramp.inputs["Fac"])
+    return ramp.outputs["Color"]
+
+
+def _torus(nt):
+    tex = nt.nodes.new("ShaderNodeTexVoronoi")
+    tex.inputs["Scale"].default_value = 6.0
+    ramp = nt.nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].color = (0.05, 0.45, 0.1, 1)
+    ramp.color_ramp.elements[1].color = (0.85, 0.95, 0.5, 1)
+    nt.links.new(tex.outputs["Distance"], ramp.inputs["Fac"])
+    return ramp.outputs["Color"]
+
+
+def build_scene(samples: int, seed: int) -> tuple[bpy.types.Scene, dict]:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    cy = scene.cycles
+    cy.device = "CPU"
+    cy.samples = samples
+    cy.use_adaptive_sampling = False
+    cy.seed = seed
+    cy.use_animated_seed = False
+    cy.max_bounces = 3
+    cy.diffuse_bounces = 1
+    cy.glossy_bounces = 0
+    cy.transmission_bounces = 0
+    cy.transparent_max_bounces = 0
+    cy.caustics_reflective = False
+    cy.caustics_refractive = False
+    try:
+        import _cycles
+        have_oidn = bool(getattr(_cycles, "with_openimagedenoise", False))
+    except ImportError:
+        have_oidn = False
+    cy.use_denoising = have_oidn
+    if have_oidn:
+        cy.denoiser = "OPENIMAGEDENOISE"
+    scene.render.use_persistent_data = True
+    scene.render.use_motion_blur = False
+    scene.render.film_transparent = False
+    vs = scene.view_settings
+    vs.view_transform = "Standard"
+    vs.look = "None"
+    vs.exposure = 0.0
+    vs.gamma = 1.0
+    scene.display_settings.display_device = "sRGB"
+
+    world = bpy.data.worlds.new("sky")
+    if world.node_tree is None:
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.8, 0.85, 1.0, 1)
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.45
+    scene.world = world
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy = 2.6
+    sun.data.angle = 0.0
+    sun.rotation_euler = (math.radians(40), math.radians(-20), math.radians(-25))
+    scene.collection.objects.link(sun)
+
+    objs = {}
+    bpy.ops.mesh.primitive_plane_add(size=1.0)
+    wall = bpy.context.object
+    wall.name = "wall"
+    wall.scale = (10.0, 5.0, 1.0)
+    wall.rotation_euler = (math.radians(90), 0, 0)
+    wall.location = (0.0, 2.5, 2.5)
+    wall.data.materials.append(_material("bricks", _bricks))
+    bpy.ops.mesh.primitive_plane_add(size=10.0)
+    floor = bpy.context.object
+    floor.name = "floor"
+    floor.data.materials.append(_material("floor", _floor))
+
+    bpy.ops.mesh.primitive_cube_add(size=0.7)
+    objs["cube"] = bpy.context.object
+    objs["cube"].data.materials.append(_material("cube", _cube))
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.33, segments=32, ring_count=16)
+    objs["ball"] = bpy.context.object
+    bpy.ops.object.shade_smooth()
+    objs["ball"].data.materials.append(_material("ball", _ball))
+    bpy.ops.mesh.primitive_torus_add(major_radius=0.32, minor_radius=0.11)
+    objs["torus"] = bpy.context.object
+    bpy.ops.object.shade_smooth()
+    objs["torus"].data.materials.append(_material("torus", _torus))
+    for name, obj in objs.items():
+        obj.name = name
+        obj.rotation_mode = "XYZ"
+    return scene, objs
+
+
+def set_time(objs: dict, t: float) -> None:
+    for name, (loc, rot) in object_poses(t).items():
+        objs[name].location = loc
+        objs[name].rotation_euler = rot
+
+
+def rig(rgb_size, spike_size, scene) -> dict:
+    """name -> dict(intr, c2w, role, blender object)."""
+    w, h = rgb_size
+    f = (w / 2.0) / math.tan(math.radians(HFOV_DEG) / 2.0)
+    rgb_intr = Intrinsics(w, h, f, f, w / 2.0, h / 2.0)
+    cams = {}
+    for name in ("rgb0", "rgb1", "eval0"):
+        cams[name] = dict(intr=rgb_intr, c2w=look_at_c2w(CAMERA_EYES[name], TARGET),
+                          role="eval" if name.startswith("eval") else "train")
+    cams["spike0"] = dict(intr=rgb_intr.scaled(*spike_size), c2w=cams["rgb0"]["c2w"].copy(), role="train")
+    for name, cam in cams.items():
+        cam["object"] = scene_build.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
+    return cams
+
+
+# ----------------------------------------------------------------------------- render
+
+def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
+    scene.camera = cam["object"]
+    scene_build.configure_render(scene, cam["intr"])
+    st = scene.render.image_settings
+    if fmt == "PNG":
+        st.file_format = "PNG"
+        st.color_mode = "RGB"
+        st.color_depth = "8"
+        st.compression = 90
+    else:
+        st.file_format = "OPEN_EXR"
+        st.color_mode = "RGB"
+        st.color_depth = "32"
+        st.exr_codec = "ZIP"
+    scene.render.filepath = str(path)
+    scene.render.use_file_extension = False
+    bpy.ops.render.render(write_still=True)
+    if not path.exists():
+        raise RuntimeError(f"Cycles did not write {path}")
+
+
+def frame_times(seconds: float, fps: float) -> np.ndarray:
+    n = int(math.floor(seconds * fps + 1e-6)) + 1
+    return np.arange(n) / fps
+
+
+def render_light(scene, objs, cam, times, work: Path, log) -> np.ndarray:
+    """Linear Rec.709 luminance at the spike camera for each time: (T, H, W) float32."""
+    from engine.colour import luminance
+    from engine.images import read_image
+
+    out = np.empty((len(times), cam["intr"].height, cam["intr"].width), np.float32)
+    for i, t in enumerate(times):
+        set_time(objs, float(t))
+        p = work / f"light_{i:06d}.exr"
+        render_to(scene, cam, p, "EXR")
+        out[i] = luminance(read_image(p)[..., :3])
+        p.unlink()
+        if i % 50 == 0:
+            log(f"  light {i + 1}/{len(times)}")
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True, type=Path, help="capture folder to write")
+    ap.add_argument("--preset", choices=sorted(PRESETS), default="demo")
+    ap.add_argument("--seconds", type=float)
+    ap.add_argument("--rgb-size", help="WxH of the RGB and eval cameras, e.g. 160x120")
+    ap.add_argument("--spike-size", help="WxH of the spike camera, e.g. 80x60")
+    ap.add_argument("--eval-fps", type=float)
+    ap.add_argument("--light-hz", type=float, help="rate at which linear light is rendered for the spike simulation")
+    ap.add_argument("--samples", type=int, help="Cycles samples per pixel")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--light-cache", type=Path, help="npz to reuse / store the rendered spike light")
+    args = ap.parse_args(argv)
+
+    cfg = dict(PRESETS[args.preset])
+    for key in ("seconds", "eval_fps", "light_hz", "samples"):
+        if getattr(args, key) is not None:
+            cfg[key] = getattr(args, key)
+    for key in ("rgb_size", "spike_size"):
+        if getattr(args, key):
+            w, h = getattr(args, key).lower().split("x")
+            cfg[key] = (int(w), int(h))
+    if cfg["seconds"] <= 0:
+        ap.error("--seconds must be > 0")
+    if (cfg["spike_size"][0] * cfg["spike_size"][1]) % 8:
+        ap.error("--spike-size: width * height must be a multiple of 8 (Vidar frames are whole bytes)")
+
+    out: Path = args.out.resolve()
+    if out.exists() and any(out.iterdir()) and not (out / "transforms.json").exists():
+        ap.error(f"{out} exists, is not empty and is not a capture; refusing to overwrite")
+    for sub in ("rgb", "eval", "spike"):
+        shutil.rmtree(out / sub, ignore_errors=True)
+    (out / "transforms.json").unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+
+    t_start = time.perf_counter()
+
+    def log(msg):
+        print(f"[{time.perf_counter() - t_start:7.1f}s] {msg}", flush=True)
+
+    scene, objs = build_scene(cfg["samples"], args.seed)
+    cams = rig(cfg["rgb_size"], cfg["spike_size"], scene)
+    log(f"scene built: {cfg}")
+
+    def record(cam_name, rel, t):
+        return {"file_path": rel, "camera": cam_name, "time": round(float(t), 9),
+                "transform_matrix": cams[cam_name]["c2w"].tolist()}
+
+    frames, eval_frames = [], []
+    rgb_times = frame_times(cfg["seconds"], RGB_FPS)
+    for i, t in enumerate(rgb_times):
+        set_time(objs, float(t))
+        for name in ("rgb0", "rgb1"):
+            rel = f"rgb/{name}/{i:06d}.png"
+            render_to(scene, cams[name], out / rel, "PNG")
+            frames.append(record(name, rel, t))
+    log(f"rgb: {len(rgb_times)} frames x 2 cameras")
+    eval_times = frame_times(cfg["seconds"], cfg["eval_fps"])
+    for i, t in enumerate(eval_times):
+        set_time(objs, float(t))
+        rel = f"eval/eval0/{i:06d}.png"
+        render_to(scene, cams["eval0"], out / rel, "PNG")
+        eval_frames.append(record("eval0", rel, t))
+    log(f"eval: {len(eval_times)} frames at {cfg['eval_fps']} FPS")
+
+    n_spike = int(round(cfg["seconds"] * SPIKE_HZ))
+    light_times = frame_times(cfg["seconds"], cfg["light_hz"])
+    if light_times[-1] < (n_spike - 1) / SPIKE_HZ:
+        light_times = np.append(light_times, light_times[-1] + 1.0 / cfg["light_hz"])
+    spike_cam = cams["spike0"]
+    key = dict(cfg, seed=args.seed, n=len(light_times))
+    key = json.dumps({k: list(v) if isinstance(v, tuple) else v for k, v in key.items()}, sort_keys=True)
+    light = None
+    if args.light_cache and args.light_cache.exists():
+        with np.load(args.light_cache) as z:
+            if str(z["key"]) == key:
+                light = z["light"]
+                log(f"light: reused {args.light_cache}")
+    if light is None:
+        with tempfile.TemporaryDirectory(prefix="bt4d_light_") as work:
+            light = render_light(scene, objs, spike_cam, light_times, Path(work), log)
+        if args.light_cache:
+            np.savez_compressed(args.light_cache, light=light, key=np.array(key))
+        log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
+            f"{spike_cam['intr'].width}x{spike_cam['intr'].height}")
+
+    from engine.spike_sim import make_gain_map, simulate_spikes
+    from engine.spikes import write_spikes
+
+    h, w = light.shape[1:]
+    gain = make_gain_map(h, w, GAIN_STD, args.seed + 1)
+    spikes = simulate_spikes(light * LIGHT_SCALE, rate_hz=SPIKE_HZ, num_frames=n_spike, t0=0.0,
+                             light_times=light_times, threshold=1.0, gain=gain,
+                             dark_current=DARK_CURRENT, shot_noise=True,
+                             photons_per_threshold=PHOTONS_PER_THRESHOLD, seed=args.seed + 2)
+    write_spikes(out / "spike" / "spike0.dat", spikes)
+    log(f"spikes: {n_spike} frames at {SPIKE_HZ:.0f} Hz, mean rate {spikes.mean():.3f} per pixel-frame")
+
+    def cam_record(name):
+        k = cams[name]["intr"]
+        return {"w": k.width, "h": k.height, "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy,
+                "role": cams[name]["role"]}
+
+    transforms = {
+        "version": 1,
+        "generator": {"script": "scripts/make_capture.py", "preset": args.preset, "seed": args.seed,
+                      "samples": cfg["samples"], "light_hz": cfg["light_hz"]},
+        "cameras": {name: cam_record(name) for name in ("rgb0", "rgb1", "spike0", "eval0")},
+        "frames": frames,
+        "eval_frames": eval_frames,
+        "spike_streams": [{
+            "file_path": "spike/spike0.dat", "camera": "spike0", "rate_hz": SPIKE_HZ, "t0": 0.0,
+            "num_frames": n_spike, "w": w, "h": h, "co_located_with": "rgb0",
+            "transform_matrix": spike_cam["c2w"].tolist(),
+            "sim": {"intensity": "rec709_luminance_linear", "light_scale": LIGHT_SCALE, "threshold": 1.0,
+                    "gain_std": GAIN_STD, "dark_current": DARK_CURRENT,
+                    "shot_noise": True, "photons_per_threshold": PHOTONS_PER_THRESHOLD},
+        }],
+    }
+    (out / "transforms.json").write_text(json.dumps(transforms, indent=1))
+    size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    log(f"wrote {out} ({size / 1e6:.2f} MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
