@@ -7,7 +7,13 @@ the operators.
 """
 from __future__ import annotations
 
-from . import bt4d_addon, operators
+import os
+
+# Before anything imports torch: keep torch's and numba's OpenMP pools from busy-waiting
+# against each other (see engine/__init__.py).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from . import bt4d_addon, operators  # noqa: E402
 
 
 def register():

@@ -9,6 +9,12 @@ Light names (numpy only) import eagerly; torch-heavy names resolve on first use 
 from __future__ import annotations
 
 import importlib
+import os
+
+# torch and numba each run an OpenMP pool; with the default busy-wait policy the two pools
+# spin against each other between parallel regions (measured: 5x slower rasterizer on 2
+# cores). Must be set before torch is imported; an explicit user value wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .cameras import Intrinsics, View, look_at_c2w, project_points, viewmat_from_c2w_gl
 from .errors import CaptureError, RunError

@@ -1,0 +1,825 @@
+"""numba kernels of the CPU rasterizer: tile binning, compositing forward, hand-derived backward.
+
+Imported lazily by ``engine.raster.cpu`` (numba is optional). The compositing kernels
+are float32 and process the pixels of a tile in lockstep, branch-free, so that LLVM
+vectorises the pixel loop (exp is a branch-free polynomial for the same reason).
+``cache=True``: the compiled code is stored next to this file (or
+in numba's user cache dir when that is read-only), so only the first process compiles.
+
+Layout: all C cameras are processed by one call. Gaussian ``g`` of camera ``c`` has the
+flat index ``c * N + g``. Tiles are numbered ``c * tiles_y * tiles_x + ty * tiles_x + tx``;
+``offsets[tile]:offsets[tile + 1]`` is that tile's slice of ``ids`` (flat Gaussian indices,
+front to back).
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+
+import numpy as np
+from numba import njit, prange
+
+
+def _install_cache_locator() -> None:
+    """Give this module's compiled kernels a cache directory of their own, keyed by the
+    module's import name.
+
+    numba's cache is keyed by source file, but a cache entry pickles the *import name* of
+    the module. The same files are imported as ``engine.raster._kernels`` by
+    ``python -m engine`` and as ``bl_ext.<repo>.bullettime4d.engine.raster._kernels``
+    inside Blender; with one shared ``__pycache__`` the second one crashes loading the
+    first one's entries (ModuleNotFoundError). Our locator only answers for this module
+    (other numba users in the process are untouched): ``$NUMBA_CACHE_DIR/bullettime4d``
+    when set, else ``__pycache__`` next to this file, else ``~/.cache/bullettime4d``.
+    """
+    try:
+        from numba.core import caching, config
+        base = caching._CacheLocator
+        mixin = caching._SourceFileBackedLocatorMixin
+        impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl")
+        impl._locator_classes.insert  # noqa: B018 - must be a list
+    except (ImportError, AttributeError):  # a numba without these internals: default cache
+        return
+    module = __name__
+    tag = "numba-" + re.sub(r"[^A-Za-z0-9_.-]", "_", module)
+
+    class PerImportNameLocator(mixin, base):
+        def __init__(self, py_func, py_file, cache_path):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = cache_path
+
+        def get_cache_path(self):
+            return self._cache_path
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if getattr(py_func, "__module__", None) != module or not os.path.exists(py_file):
+                return None
+            roots = []
+            if config.CACHE_DIR:
+                roots.append(os.path.join(config.CACHE_DIR, "bullettime4d"))
+            roots.append(os.path.join(os.path.dirname(os.path.abspath(py_file)), "__pycache__"))
+            xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+            roots.append(os.path.join(xdg, "bullettime4d"))
+            for root in roots:
+                self = cls(py_func, py_file, os.path.join(root, tag))
+                try:
+                    self.ensure_cache_path()
+                except OSError:
+                    continue
+                return self
+            return None
+
+    impl._locator_classes = [c for c in impl._locator_classes
+                             if getattr(c, "_bt4d_module", None) != module]
+    PerImportNameLocator._bt4d_module = module
+    impl._locator_classes.insert(0, PerImportNameLocator)
+
+
+_install_cache_locator()
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+TRANSMITTANCE_STOP = 1e-4
+# power above log(255 * opacity) + margin means alpha < 1/255 for sure: skip exp()
+LOG_MARGIN = 1e-4
+N_GRAD = 6  # per-intersection gradient slots before the features: mx, my, ca, cb, cc, opacity
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ellipse_yspan(mx, my, A, B, C, L, xa, xb):
+    """y-interval (lo, hi) of the ellipse 0.5 [dx dy] [[A B] [B C]] [dx dy]^T <= L over the
+    x-band xa <= x <= xb (lo > hi: the band misses it). Exact: the top / bottom of the band's
+    slice is the ellipse's own top / bottom when that lies in the band, else a band edge."""
+    det = A * C - B * B
+    if not (det > 0.0 and A > 0.0 and C > 0.0 and L > 0.0):
+        return -1e30, 1e30  # degenerate: no culling
+    xe = math.sqrt(2.0 * L * C / det)
+    ye = math.sqrt(2.0 * L * A / det)
+    da = max(xa - mx, -xe)
+    db = min(xb - mx, xe)
+    if da > db:
+        return 1.0, -1.0
+    ra = math.sqrt(max(2.0 * L * C - det * da * da, 0.0)) / C
+    rb = math.sqrt(max(2.0 * L * C - det * db * db, 0.0)) / C
+    ca = -B * da / C
+    cb = -B * db / C
+    t = -B * ye / A  # dx of the topmost point (dy = +ye); the bottom one is at -t
+    hi = ye if (da <= t and t <= db) else max(ca + ra, cb + rb)
+    lo = -ye if (da <= -t and -t <= db) else min(ca - ra, cb - rb)
+    return my + lo - 1e-3, my + hi + 1e-3
+
+
+@njit(cache=True, nogil=True)
+def _visit(g, means2d, conics, opac, radii_xy, tile_size, tiles_x, tiles_y, width, height,
+           base, write, at, tile_out, span_out):
+    """Tiles (and, per tile, the rows [r0, r1)) that Gaussian g can reach with alpha >= 1/255.
+    Counts them, and writes them at ``at`` when ``write``."""
+    mx = np.float64(means2d[g, 0])
+    my = np.float64(means2d[g, 1])
+    ry = np.float64(radii_xy[g, 1])
+    x0, x1, y0, y1 = _bbox_tiles(g, means2d, radii_xy, tile_size, tiles_x, tiles_y)
+    # power <= log(255 * opacity) <=> alpha >= 1/255 (margin for float32 rounding)
+    L = math.log(max(np.float64(opac[g]), 1e-30) * 255.0) + LOG_MARGIN
+    A = np.float64(conics[g, 0])
+    B = np.float64(conics[g, 1])
+    C = np.float64(conics[g, 2])
+    n = 0
+    for tx in range(x0, x1):
+        xa = tx * tile_size + 0.5
+        xb = min((tx + 1) * tile_size, width) - 0.5
+        lo, hi = _ellipse_yspan(mx, my, A, B, C, L, xa, xb)
+        lo = max(lo, my - ry)
+        hi = min(hi, my + ry)
+        if lo > hi:
+            continue
+        # pixel rows whose centres lie in [lo, hi]
+        p_lo = max(math.ceil(lo - 0.5), 0.0)
+        p_hi = min(math.floor(hi - 0.5), height - 1.0)
+        if p_lo > p_hi:
+            continue
+        ty0 = max(int(p_lo) // tile_size, y0)
+        ty1 = min(int(p_hi) // tile_size + 1, y1)
+        for ty in range(ty0, ty1):
+            if write:
+                r0 = max(int(p_lo) - ty * tile_size, 0)
+                r1 = min(int(p_hi) - ty * tile_size + 1, tile_size)
+                tile_out[at + n] = base + ty * tiles_x + tx
+                span_out[at + n] = r0 | (r1 << 8)
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bbox_tiles(g, means2d, radii_xy, tile_size, tiles_x, tiles_y):
+    mx = np.float64(means2d[g, 0])
+    my = np.float64(means2d[g, 1])
+    rx = np.float64(radii_xy[g, 0])
+    ry = np.float64(radii_xy[g, 1])
+    x0 = int(min(max(math.floor((mx - rx - 0.5) / tile_size), 0.0), tiles_x))
+    x1 = int(min(max(math.floor((mx + rx - 0.5) / tile_size) + 1.0, 0.0), tiles_x))
+    y0 = int(min(max(math.floor((my - ry - 0.5) / tile_size), 0.0), tiles_y))
+    y1 = int(min(max(math.floor((my + ry - 0.5) / tile_size) + 1.0, 0.0), tiles_y))
+    return x0, x1, y0, y1
+
+
+@njit(parallel=True, cache=True)
+def bin_gaussians(means2d, conics, opac, radii_xy, order, n_per_cam, n_cams, tile_size,
+                  tiles_x, tiles_y, width, height):
+    """Tile lists. means2d [G,2], conics [G,3], opac [G], radii_xy [G,2] int32, order [V]
+    int64: visible flat indices sorted by (camera, depth). A tile gets a Gaussian only if
+    the Gaussian's alpha >= 1/255 ellipse covers one of its pixel centres (exact, not the
+    bounding box). Returns offsets [C*T+1] int64, ids [M] int32 (front to back per tile)
+    and spans [M] int32: the tile rows r0 | r1 << 8 that the Gaussian reaches."""
+    n_tiles = tiles_x * tiles_y
+    V = order.shape[0]
+    # pass 1: bounding-box tile counts (an upper bound) -> slots per Gaussian
+    ub = np.zeros(V + 1, np.int64)
+    for k in prange(V):
+        x0, x1, y0, y1 = _bbox_tiles(order[k], means2d, radii_xy, tile_size, tiles_x, tiles_y)
+        ub[k + 1] = max(x1 - x0, 0) * max(y1 - y0, 0)
+    for k in range(V):
+        ub[k + 1] += ub[k]
+    tile_of = np.empty(ub[V], np.int64)
+    span_of = np.empty(ub[V], np.int32)
+    cnt = np.zeros(V, np.int64)
+    # pass 2: the tiles the ellipse really reaches, written into those slots
+    for k in prange(V):
+        g = order[k]
+        cnt[k] = _visit(g, means2d, conics, opac, radii_xy, tile_size, tiles_x, tiles_y,
+                        width, height, (g // n_per_cam) * n_tiles, True, ub[k], tile_of, span_of)
+    # stable counting sort by tile (the slots are already front to back)
+    offsets = np.zeros(n_cams * n_tiles + 1, np.int64)
+    for k in range(V):
+        for m in range(ub[k], ub[k] + cnt[k]):
+            offsets[tile_of[m] + 1] += 1
+    for i in range(1, offsets.shape[0]):
+        offsets[i] += offsets[i - 1]
+    fill = offsets[:-1].copy()
+    M = offsets[-1]
+    ids = np.empty(M, np.int32)
+    spans = np.empty(M, np.int32)
+    for k in range(V):
+        g = order[k]
+        for m in range(ub[k], ub[k] + cnt[k]):
+            t = tile_of[m]
+            j = fill[t]
+            ids[j] = g
+            spans[j] = span_of[m]
+            fill[t] = j + 1
+    return offsets, ids, spans
+
+
+_F = np.float32
+F0 = _F(0.0)
+F1 = _F(1.0)
+FHALF = _F(0.5)
+F_THR = _F(ALPHA_THRESHOLD)
+F_STOP = _F(TRANSMITTANCE_STOP)
+F_QMAX = _F(7.0)        # exp(-7) < 1/255: anything beyond is skipped whatever the approximation
+F_QSCALE = _F(1.0 / 16.0)
+# Taylor coefficients of exp(-r), r in [0, 7/16]; the result is squared 4 times.
+E1 = _F(-1.0)
+E2 = _F(1.0 / 2.0)
+E3 = _F(-1.0 / 6.0)
+E4 = _F(1.0 / 24.0)
+E5 = _F(-1.0 / 120.0)
+E6 = _F(1.0 / 720.0)
+E7 = _F(-1.0 / 5040.0)
+N_FEAT = 4  # rgb + depth
+
+
+@njit(cache=True, nogil=True, inline="always")
+def exp_neg(q):
+    """exp(-q) for float32 q in [0, 7], branch-free (vectorises; ~1e-6 relative error)."""
+    r = q * F_QSCALE
+    e = F1 + r * (E1 + r * (E2 + r * (E3 + r * (E4 + r * (E5 + r * (E6 + r * E7))))))
+    e = e * e
+    e = e * e
+    e = e * e
+    return e * e
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_span(span, tile_size):
+    """Pixel slots [p0, p1) of the tile rows r0 | r1 << 8 that binning found reachable."""
+    r0 = span & 255
+    r1 = span >> 8
+    # LLVM's vector loop takes >= 16 lanes; a lone short row would run scalar: widen it
+    while (r1 - r0) * tile_size < 16 and (r1 - r0) < tile_size:
+        if r1 < tile_size:
+            r1 += 1
+        else:
+            r0 -= 1
+    return np.uint64(r0 * tile_size), np.uint64(r1 * tile_size)  # unsigned: no wraparound checks
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fwd_tile(tile, packed, spans, offsets, height, width, tile_size,
+              tiles_x, n_tiles, amax, out_feat, out_alpha, final_t, last_i):
+    ts2 = tile_size * tile_size
+    c = tile // n_tiles
+    t = tile - c * n_tiles
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    s = offsets[tile]
+    n = offsets[tile + 1] - s
+    y0 = ty * tile_size
+    x0 = tx * tile_size
+    pxs = np.empty(ts2, np.float32)
+    pys = np.empty(ts2, np.float32)
+    T = np.ones(ts2, np.float32)
+    act = np.empty(ts2, np.int32)
+    last = np.full(ts2, -1, np.int32)
+    a0 = np.zeros(ts2, np.float32)
+    a1 = np.zeros(ts2, np.float32)
+    a2 = np.zeros(ts2, np.float32)
+    a3 = np.zeros(ts2, np.float32)
+    n_act = 0
+    for p in range(ts2):
+        py = y0 + p // tile_size
+        px = x0 + p % tile_size
+        pxs[p] = _F(px) + FHALF
+        pys[p] = _F(py) + FHALF
+        inside = 1 if (py < height and px < width) else 0
+        act[p] = inside
+        n_act += inside
+    for i in range(n):
+        k = s + i  # packed: this tile's Gaussians, contiguous and front to back
+        gx = packed[k, 0]
+        gy = packed[k, 1]
+        ca = packed[k, 2]
+        cb = packed[k, 3]
+        cc = packed[k, 4]
+        op = packed[k, 5]
+        f0 = packed[k, 6]
+        f1 = packed[k, 7]
+        f2 = packed[k, 8]
+        f3 = packed[k, 9]
+        # only the tile rows within the Gaussian's y radius can reach alpha >= 1/255
+        p0, p1 = _row_span(spans[s + i], tile_size)
+        for p in range(p0, p1):
+            dx = gx - pxs[p]
+            dy = gy - pys[p]
+            power = FHALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            q = min(max(power, F0), F_QMAX)
+            alpha = min(amax, op * exp_neg(q))
+            tp = T[p]
+            nt = tp * (F1 - alpha)
+            ok = (power >= F0) and (alpha >= F_THR) and (act[p] != 0)
+            use = ok and (nt > F_STOP)
+            w = alpha * tp if use else F0
+            a0[p] += w * f0
+            a1[p] += w * f1
+            a2[p] += w * f2
+            a3[p] += w * f3
+            T[p] = nt if use else tp
+            last[p] = i if use else last[p]
+            act[p] = 0 if (ok and not use) else act[p]
+        # any pixel still open? (a separate scan keeps the loop above vectorisable)
+        n_act = 0
+        for p in range(ts2):
+            if act[p] != 0:
+                n_act = 1
+                break
+        if n_act == 0:
+            break
+    for p in range(ts2):
+        py = y0 + p // tile_size
+        px = x0 + p % tile_size
+        if py < height and px < width:
+            out_feat[c, py, px, 0] = a0[p]
+            out_feat[c, py, px, 1] = a1[p]
+            out_feat[c, py, px, 2] = a2[p]
+            out_feat[c, py, px, 3] = a3[p]
+            out_alpha[c, py, px] = F1 - T[p]
+            final_t[c, py, px] = T[p]
+            last_i[c, py, px] = last[p]
+
+
+@njit(parallel=True, cache=True)
+def rasterize_fwd(packed, spans, offsets, n_cams, height, width, tile_size,
+                  tiles_x, tiles_y, alpha_max, out_feat, out_alpha, final_t, last_i):
+    """Front-to-back compositing, all pixels of a tile in lockstep (SIMD over pixels).
+    packed [M,10] float32: per intersection (tile order, see ``pack``) mean x, y, conic a,
+    b, c, opacity, 4 features; spans [M] int32: the tile rows r0 | r1 << 8 to visit.
+    Outputs: out_feat [C,H,W,4], out_alpha [C,H,W], final_t [C,H,W] (transmittance left),
+    last_i [C,H,W] int32 (index within the tile's list of the last Gaussian composited,
+    -1 if none)."""
+    n_tiles = tiles_x * tiles_y
+    amax = _F(alpha_max)
+    for tile in prange(n_cams * n_tiles):
+        _fwd_tile(tile, packed, spans, offsets, height, width, tile_size,
+                  tiles_x, n_tiles, amax, out_feat, out_alpha, final_t, last_i)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "nsz"})
+def _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
+              tiles_x, n_tiles, amax, final_t, last_i, v_feat, v_alpha, v_isect):
+    ts2 = tile_size * tile_size
+    c = tile // n_tiles
+    t = tile - c * n_tiles
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    s = offsets[tile]
+    n = offsets[tile + 1] - s
+    if n == 0:
+        return
+    y0 = ty * tile_size
+    x0 = tx * tile_size
+    pxs = np.empty(ts2, np.float32)
+    pys = np.empty(ts2, np.float32)
+    T = np.ones(ts2, np.float32)
+    tfin = np.ones(ts2, np.float32)
+    last = np.full(ts2, -1, np.int32)
+    va = np.zeros(ts2, np.float32)
+    v0 = np.zeros(ts2, np.float32)
+    v1 = np.zeros(ts2, np.float32)
+    v2 = np.zeros(ts2, np.float32)
+    v3 = np.zeros(ts2, np.float32)
+    b0 = np.zeros(ts2, np.float32)
+    b1 = np.zeros(ts2, np.float32)
+    b2 = np.zeros(ts2, np.float32)
+    b3 = np.zeros(ts2, np.float32)
+    i_max = -1
+    for p in range(ts2):
+        py = y0 + p // tile_size
+        px = x0 + p % tile_size
+        pxs[p] = _F(px) + FHALF
+        pys[p] = _F(py) + FHALF
+        if py < height and px < width:
+            T[p] = final_t[c, py, px]
+            tfin[p] = T[p]
+            lp = last_i[c, py, px]
+            last[p] = lp
+            i_max = max(i_max, lp)
+            va[p] = v_alpha[c, py, px]
+            v0[p] = v_feat[c, py, px, 0]
+            v1[p] = v_feat[c, py, px, 1]
+            v2[p] = v_feat[c, py, px, 2]
+            v3[p] = v_feat[c, py, px, 3]
+    for i in range(i_max, -1, -1):
+        k = s + i  # packed: this tile's Gaussians, contiguous and front to back
+        gx = packed[k, 0]
+        gy = packed[k, 1]
+        ca = packed[k, 2]
+        cb = packed[k, 3]
+        cc = packed[k, 4]
+        op = packed[k, 5]
+        f0 = packed[k, 6]
+        f1 = packed[k, 7]
+        f2 = packed[k, 8]
+        f3 = packed[k, 9]
+        g_x = F0
+        g_y = F0
+        g_a = F0
+        g_b = F0
+        g_c = F0
+        g_o = F0
+        g_f0 = F0
+        g_f1 = F0
+        g_f2 = F0
+        g_f3 = F0
+        p0, p1 = _row_span(spans[s + i], tile_size)
+        for p in range(p0, p1):
+            dx = gx - pxs[p]
+            dy = gy - pys[p]
+            power = FHALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            q = min(max(power, F0), F_QMAX)
+            vis = exp_neg(q)
+            raw = op * vis
+            alpha = min(amax, raw)
+            ok = (power >= F0) and (alpha >= F_THR) and (i <= last[p])
+            ra = F1 / (F1 - alpha)
+            tp = T[p]
+            tn = tp * ra if ok else tp
+            fac = alpha * tn if ok else F0
+            v_a = (f0 * tn - b0[p] * ra) * v0[p] + (f1 * tn - b1[p] * ra) * v1[p] \
+                + (f2 * tn - b2[p] * ra) * v2[p] + (f3 * tn - b3[p] * ra) * v3[p] \
+                + tfin[p] * ra * va[p]
+            g_f0 += fac * v0[p]
+            g_f1 += fac * v1[p]
+            g_f2 += fac * v2[p]
+            g_f3 += fac * v3[p]
+            b0[p] += fac * f0
+            b1[p] += fac * f1
+            b2[p] += fac * f2
+            b3[p] += fac * f3
+            T[p] = tn
+            v_sigma = -raw * v_a if (ok and raw <= amax) else F0
+            g_x += v_sigma * (ca * dx + cb * dy)
+            g_y += v_sigma * (cb * dx + cc * dy)
+            g_a += v_sigma * dx * dx
+            g_b += v_sigma * dx * dy
+            g_c += v_sigma * dy * dy
+            g_o += v_sigma
+        k = s + i
+        v_isect[k, 0] = g_x
+        v_isect[k, 1] = g_y
+        v_isect[k, 2] = FHALF * g_a
+        v_isect[k, 3] = g_b
+        v_isect[k, 4] = FHALF * g_c
+        v_isect[k, 5] = -g_o / op if op > F0 else F0
+        v_isect[k, 6] = g_f0
+        v_isect[k, 7] = g_f1
+        v_isect[k, 8] = g_f2
+        v_isect[k, 9] = g_f3
+
+
+@njit(parallel=True, cache=True)
+def rasterize_bwd(packed, spans, offsets, n_cams, height, width, tile_size,
+                  tiles_x, tiles_y, alpha_max, final_t, last_i, v_feat, v_alpha, v_isect):
+    """Back-to-front replay of each pixel from its final transmittance and last index
+    (gsplat's rasterize_to_pixels backward), pixels of a tile in lockstep. v_feat
+    [C,H,W,4], v_alpha [C,H,W] are the output gradients; v_isect [M, 10] receives the
+    per-intersection gradients w.r.t. (mean x, mean y, conic a, b, c, opacity, feats 0..3)."""
+    n_tiles = tiles_x * tiles_y
+    amax = _F(alpha_max)
+    for tile in prange(n_cams * n_tiles):
+        _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
+                  tiles_x, n_tiles, amax, final_t, last_i, v_feat, v_alpha, v_isect)
+
+
+@njit(parallel=True, cache=True)
+def pack(means2d, conics, opac, feats, ids, packed):
+    """packed[k] = (mean x, y, conic a, b, c, opacity, feats 0..3) of Gaussian ids[k]: the
+    compositing kernels then read each tile's Gaussians contiguously instead of gathering
+    them from all over memory twice (forward and backward)."""
+    for k in prange(ids.shape[0]):
+        g = ids[k]
+        packed[k, 0] = means2d[g, 0]
+        packed[k, 1] = means2d[g, 1]
+        packed[k, 2] = conics[g, 0]
+        packed[k, 3] = conics[g, 1]
+        packed[k, 4] = conics[g, 2]
+        packed[k, 5] = opac[g]
+        packed[k, 6] = feats[g, 0]
+        packed[k, 7] = feats[g, 1]
+        packed[k, 8] = feats[g, 2]
+        packed[k, 9] = feats[g, 3]
+
+
+@njit(cache=True, nogil=True)
+def scatter_grads(ids, v_isect, v_gauss):
+    """v_gauss[ids[k]] += v_isect[k] (v_gauss [G, 6+D], zero-filled)."""
+    K = v_isect.shape[1]
+    for k in range(ids.shape[0]):
+        g = ids[k]
+        for j in range(K):
+            v_gauss[g, j] += v_isect[k, j]
+
+
+# ------------------------------------------------------------------------------ projection
+# EWA projection of N Gaussians into C cameras with a hand-derived backward. Computed in
+# float64 per Gaussian (it is O(N*C), cheap); same rules as ``projection.project_gaussians``.
+
+PROJ_CHUNK = 256  # Gaussians per parallel work item (scratch arrays allocated once per item)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _quat_rot(quats, n, R):
+    """Normalised quaternion (w, x, y, z) and 1/|q| (0 if degenerate); R <- its rotation."""
+    w = np.float64(quats[n, 0])
+    x = np.float64(quats[n, 1])
+    y = np.float64(quats[n, 2])
+    z = np.float64(quats[n, 3])
+    q2 = w * w + x * x + y * y + z * z
+    if q2 > 1e-24:
+        inv = 1.0 / math.sqrt(q2)
+    else:
+        w, x, y, z, inv = 1.0, 0.0, 0.0, 0.0, 0.0
+        q2 = 1.0
+    if inv > 0.0:
+        w, x, y, z = w * inv, x * inv, y * inv, z * inv
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return w, x, y, z, inv
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cam_setup(viewmats, Ks, c, width, height):
+    fx = np.float64(Ks[c, 0, 0])
+    fy = np.float64(Ks[c, 1, 1])
+    cx = np.float64(Ks[c, 0, 2])
+    cy = np.float64(Ks[c, 1, 2])
+    tan_x = 0.5 * width / fx
+    tan_y = 0.5 * height / fy
+    return (fx, fy, cx, cy, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x,
+            -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, far, eps2d,
+                out_m2d, out_conic, out_z, out_radii):
+    """means [N,3], quats [N,4] wxyz, scales [N,3], opac [N], viewmats [C,4,4], Ks [C,3,3]
+    -> out_m2d [C,N,2], out_conic [C,N,3], out_z [C,N], out_radii [C,N,2] int32 (0 = culled).
+    Depth-culled Gaussians get zero means2d / conics."""
+    N = means.shape[0]
+    C = viewmats.shape[0]
+    for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
+        Rq = np.empty((3, 3), np.float64)
+        M = np.empty((3, 3), np.float64)
+        for n in range(chunk * PROJ_CHUNK, min(N, (chunk + 1) * PROJ_CHUNK)):
+            _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height, near,
+                             far, eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height, near, far,
+                     eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M):
+    C = viewmats.shape[0]
+    if True:
+        w, x, y, z, inv = _quat_rot(quats, n, Rq)
+        for i in range(3):
+            for k in range(3):
+                M[i, k] = Rq[i, k] * scales[n, k]
+        mx = np.float64(means[n, 0])
+        my = np.float64(means[n, 1])
+        mz = np.float64(means[n, 2])
+        op = np.float64(opac[n])
+        for c in range(C):
+            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_setup(viewmats, Ks, c, width, height)
+            px = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
+            py = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
+            pz = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
+            out_z[c, n] = pz
+            out_radii[c, n, 0] = 0
+            out_radii[c, n, 1] = 0
+            if not (pz > near and pz < far):
+                out_m2d[c, n, 0] = 0.0
+                out_m2d[c, n, 1] = 0.0
+                out_conic[c, n, 0] = 0.0
+                out_conic[c, n, 1] = 0.0
+                out_conic[c, n, 2] = 0.0
+                continue
+            iz = 1.0 / pz
+            u = px * iz
+            v = py * iz
+            u2 = fx * u + cx
+            v2 = fy * v + cy
+            out_m2d[c, n, 0] = u2
+            out_m2d[c, n, 1] = v2
+            uc = min(max(u, ulo), uhi)
+            vc = min(max(v, vlo), vhi)
+            A = eps2d
+            B = 0.0
+            Cc = eps2d
+            for k in range(3):
+                ak = 0.0
+                bk = 0.0
+                for j in range(3):
+                    t0 = fx * iz * (viewmats[c, 0, j] - uc * viewmats[c, 2, j])
+                    t1 = fy * iz * (viewmats[c, 1, j] - vc * viewmats[c, 2, j])
+                    ak += t0 * M[j, k]
+                    bk += t1 * M[j, k]
+                A += ak * ak
+                B += ak * bk
+                Cc += bk * bk
+            det = max(A * Cc - B * B, 1e-10)
+            out_conic[c, n, 0] = Cc / det
+            out_conic[c, n, 1] = -B / det
+            out_conic[c, n, 2] = A / det
+            if not op >= ALPHA_THRESHOLD:
+                continue
+            ext = min(3.33, math.sqrt(2.0 * math.log(op * 255.0)))
+            rx = math.ceil(ext * math.sqrt(A))
+            ry = math.ceil(ext * math.sqrt(Cc))
+            if not (rx > 0.0 and ry > 0.0 and rx < 1e9 and ry < 1e9):
+                continue
+            if u2 + rx <= 0.0 or u2 - rx >= width or v2 + ry <= 0.0 or v2 - ry >= height:
+                continue
+            out_radii[c, n, 0] = int(rx)
+            out_radii[c, n, 1] = int(ry)
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+                v_m2d, v_conic, v_z, v_means, v_quats, v_scales):
+    """Gradients of project_fwd's means2d / conics / z w.r.t. means, quats, scales
+    (v_means [N,3], v_quats [N,4], v_scales [N,3] are written, not accumulated)."""
+    N = means.shape[0]
+    for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
+        Rq = np.empty((3, 3), np.float64)
+        M = np.empty((3, 3), np.float64)
+        gM = np.empty((3, 3), np.float64)
+        G = np.empty((3, 3), np.float64)
+        a = np.empty(3, np.float64)
+        b = np.empty(3, np.float64)
+        T0 = np.empty(3, np.float64)
+        T1 = np.empty(3, np.float64)
+        for n in range(chunk * PROJ_CHUNK, min(N, (chunk + 1) * PROJ_CHUNK)):
+            _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near, far,
+                             eps2d, v_m2d, v_conic, v_z, v_means, v_quats, v_scales,
+                             Rq, M, gM, G, a, b, T0, T1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+                     v_m2d, v_conic, v_z, v_means, v_quats, v_scales, Rq, M, gM, G, a, b, T0, T1):
+    C = viewmats.shape[0]
+    if True:
+        w, x, y, z, inv = _quat_rot(quats, n, Rq)
+        gM[:, :] = 0.0
+        for i in range(3):
+            for k in range(3):
+                M[i, k] = Rq[i, k] * scales[n, k]
+        mx = np.float64(means[n, 0])
+        my = np.float64(means[n, 1])
+        mz = np.float64(means[n, 2])
+        gmx = 0.0
+        gmy = 0.0
+        gmz = 0.0
+        for c in range(C):
+            gz = np.float64(v_z[c, n])
+            gmx += viewmats[c, 2, 0] * gz
+            gmy += viewmats[c, 2, 1] * gz
+            gmz += viewmats[c, 2, 2] * gz
+            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_setup(viewmats, Ks, c, width, height)
+            px = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
+            py = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
+            pz = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
+            if not (pz > near and pz < far):
+                continue
+            iz = 1.0 / pz
+            u = px * iz
+            v = py * iz
+            uc = min(max(u, ulo), uhi)
+            vc = min(max(v, vlo), vhi)
+            A = eps2d
+            B = 0.0
+            Cc = eps2d
+            for j in range(3):
+                T0[j] = fx * iz * (viewmats[c, 0, j] - uc * viewmats[c, 2, j])
+                T1[j] = fy * iz * (viewmats[c, 1, j] - vc * viewmats[c, 2, j])
+            for k in range(3):
+                a[k] = T0[0] * M[0, k] + T0[1] * M[1, k] + T0[2] * M[2, k]
+                b[k] = T1[0] * M[0, k] + T1[1] * M[1, k] + T1[2] * M[2, k]
+                A += a[k] * a[k]
+                B += a[k] * b[k]
+                Cc += b[k] * b[k]
+            det = A * Cc - B * B
+            g0 = np.float64(v_conic[c, n, 0])
+            g1 = np.float64(v_conic[c, n, 1])
+            g2 = np.float64(v_conic[c, n, 2])
+            if det > 1e-10:
+                idet = 1.0 / det
+                gdet = -(g0 * Cc - g1 * B + g2 * A) * idet * idet
+            else:
+                idet = 1e10
+                gdet = 0.0
+            gA = g2 * idet + gdet * Cc
+            gB = -g1 * idet - 2.0 * gdet * B
+            gC = g0 * idet + gdet * A
+            # a = T0 M, b = T1 M
+            gT0x = 0.0
+            gT0y = 0.0
+            gT0z = 0.0
+            gT1x = 0.0
+            gT1y = 0.0
+            gT1z = 0.0
+            for k in range(3):
+                ga = 2.0 * gA * a[k] + gB * b[k]
+                gb = 2.0 * gC * b[k] + gB * a[k]
+                gT0x += ga * M[0, k]
+                gT0y += ga * M[1, k]
+                gT0z += ga * M[2, k]
+                gT1x += gb * M[0, k]
+                gT1y += gb * M[1, k]
+                gT1z += gb * M[2, k]
+                for j in range(3):
+                    gM[j, k] += T0[j] * ga + T1[j] * gb
+            # T0_j = fx iz (R0j - uc R2j), T1_j = fy iz (R1j - vc R2j)
+            s0 = gT0x * viewmats[c, 0, 0] + gT0y * viewmats[c, 0, 1] + gT0z * viewmats[c, 0, 2]
+            s1 = gT1x * viewmats[c, 1, 0] + gT1y * viewmats[c, 1, 1] + gT1z * viewmats[c, 1, 2]
+            r0 = gT0x * viewmats[c, 2, 0] + gT0y * viewmats[c, 2, 1] + gT0z * viewmats[c, 2, 2]
+            r1 = gT1x * viewmats[c, 2, 0] + gT1y * viewmats[c, 2, 1] + gT1z * viewmats[c, 2, 2]
+            giz = fx * (s0 - uc * r0) + fy * (s1 - vc * r1)
+            gu = fx * np.float64(v_m2d[c, n, 0])
+            gv = fy * np.float64(v_m2d[c, n, 1])
+            if u > ulo and u < uhi:
+                gu += -fx * iz * r0
+            if v > vlo and v < vhi:
+                gv += -fy * iz * r1
+            gpx = gu * iz
+            gpy = gv * iz
+            giz += gu * px + gv * py
+            gpz = -giz * iz * iz
+            for j in range(3):
+                gmj = viewmats[c, 0, j] * gpx + viewmats[c, 1, j] * gpy + viewmats[c, 2, j] * gpz
+                if j == 0:
+                    gmx += gmj
+                elif j == 1:
+                    gmy += gmj
+                else:
+                    gmz += gmj
+        v_means[n, 0] = gmx
+        v_means[n, 1] = gmy
+        v_means[n, 2] = gmz
+        # M = Rq diag(s)
+        for k in range(3):
+            gs = 0.0
+            for j in range(3):
+                gs += gM[j, k] * Rq[j, k]
+                G[j, k] = gM[j, k] * scales[n, k]
+            v_scales[n, k] = gs
+        gw = 2.0 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+        gx = 2.0 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2.0 * x * G[1, 1] - w * G[1, 2]
+                    + z * G[2, 0] + w * G[2, 1] - 2.0 * x * G[2, 2])
+        gy = 2.0 * (-2.0 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2]
+                    - w * G[2, 0] + z * G[2, 1] - 2.0 * y * G[2, 2])
+        gzq = 2.0 * (-2.0 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2.0 * z * G[1, 1]
+                     + y * G[1, 2] + x * G[2, 0] + y * G[2, 1])
+        dot = w * gw + x * gx + y * gy + z * gzq
+        v_quats[n, 0] = (gw - w * dot) * inv
+        v_quats[n, 1] = (gx - x * dot) * inv
+        v_quats[n, 2] = (gy - y * dot) * inv
+        v_quats[n, 3] = (gzq - z * dot) * inv
+
+
+# ------------------------------------------------------------------------- SH combination
+
+@njit(parallel=True, cache=True)
+def sh_combine_fwd(basis, coeffs, out):
+    """out[c,n,d] = sum_k basis[c,n,k] * coeffs[n,k,d] (basis [C,N,K], coeffs [N,K',3])."""
+    C, N, K = basis.shape
+    for n in prange(N):
+        for c in range(C):
+            r = np.float64(0.0)
+            g = np.float64(0.0)
+            b = np.float64(0.0)
+            for k in range(K):
+                w = np.float64(basis[c, n, k])
+                r += w * coeffs[n, k, 0]
+                g += w * coeffs[n, k, 1]
+                b += w * coeffs[n, k, 2]
+            out[c, n, 0] = r
+            out[c, n, 1] = g
+            out[c, n, 2] = b
+
+
+@njit(parallel=True, cache=True)
+def sh_combine_bwd(basis, coeffs, v_out, v_basis, v_coeffs):
+    """Gradients of sh_combine_fwd (v_coeffs [N,K,3] written for k < K, zero elsewhere)."""
+    C, N, K = basis.shape
+    for n in prange(N):
+        for k in range(v_coeffs.shape[1]):
+            for d in range(3):
+                v_coeffs[n, k, d] = 0.0
+        for c in range(C):
+            g0 = np.float64(v_out[c, n, 0])
+            g1 = np.float64(v_out[c, n, 1])
+            g2 = np.float64(v_out[c, n, 2])
+            for k in range(K):
+                v_basis[c, n, k] = g0 * coeffs[n, k, 0] + g1 * coeffs[n, k, 1] + g2 * coeffs[n, k, 2]
+                w = basis[c, n, k]
+                v_coeffs[n, k, 0] += w * g0
+                v_coeffs[n, k, 1] += w * g1
+                v_coeffs[n, k, 2] += w * g2

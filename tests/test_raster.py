@@ -1,0 +1,449 @@
+"""The differentiable rasterizer: fast CPU path and tiled torch path against the dense
+reference, gradients (gradcheck on the reference in float64), projection against the
+pinhole model, edge cases, backend selection. No timing here (see bench-raster)."""
+from __future__ import annotations
+
+import math
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from engine.cameras import Intrinsics, View, c2w_gl_from_viewmat, project_points
+from engine.raster import rasterization, resolve_backend
+from engine.raster import cpu as raster_cpu
+from engine.raster import gsplat_backend
+from engine.raster.projection import eval_colors, project_gaussians, SH_C0
+
+NEEDS_NUMBA = pytest.mark.skipif(not raster_cpu.available(), reason="numba unavailable")
+
+
+def look_viewmat(eye, target=(0.0, 0.0, 0.0)):
+    """OpenCV world-to-camera matrix for a camera at eye looking at target (y-down image)."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    f = target - eye
+    f /= np.linalg.norm(f)
+    up = np.array([0.0, -1.0, 0.0])
+    r = np.cross(up, f)
+    if np.linalg.norm(r) < 1e-9:
+        r = np.array([1.0, 0.0, 0.0])
+    r /= np.linalg.norm(r)
+    d = np.cross(f, r)
+    R = np.stack([r, d, f])  # rows: camera x (right), y (down), z (forward) in world
+    vm = np.eye(4)
+    vm[:3, :3] = R
+    vm[:3, 3] = -R @ eye
+    return vm
+
+
+def make_scene(N=60, W=37, H=29, C=1, seed=0, sh_degree=None, dtype=torch.float32,
+               scale=0.08, spread=1.0):
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(N, 3, generator=g, dtype=torch.float64) * 2 - 1) * spread
+    quats = torch.randn(N, 4, generator=g, dtype=torch.float64)
+    scales = torch.exp(torch.randn(N, 3, generator=g, dtype=torch.float64) * 0.5) * scale
+    opac = torch.sigmoid(torch.randn(N, generator=g, dtype=torch.float64) * 2)
+    if sh_degree is None:
+        colors = torch.rand(N, 3, generator=g, dtype=torch.float64)
+    else:
+        K = (sh_degree + 1) ** 2
+        colors = torch.randn(N, K, 3, generator=g, dtype=torch.float64) * 0.3
+    eyes = [(0.3 * c, -0.2 * c, -4.0 + 0.2 * c) for c in range(C)]
+    viewmats = torch.tensor(np.stack([look_viewmat(e) for e in eyes]))
+    f = 0.9 * W
+    Ks = torch.tensor([[f, 0, W / 2 + 0.3], [0, f * 1.05, H / 2 - 0.2], [0, 0, 1]]).repeat(C, 1, 1)
+    to = lambda t: t.to(dtype)
+    return dict(means=to(means), quats=to(quats), scales=to(scales), opacities=to(opac),
+                colors=to(colors), viewmats=to(viewmats), Ks=to(Ks), width=W, height=H,
+                sh_degree=sh_degree)
+
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def render(scene, backend, grads=True, loss_weights=(1.0, 0.3, 0.1), **kw):
+    """Render and (optionally) differentiate a fixed, non-trivial loss."""
+    s = {k: (v.clone().requires_grad_(grads) if k in PARAMS else v) for k, v in scene.items()}
+    args = [s[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks",
+                           "width", "height")]
+    colors, alphas, meta = rasterization(*args, sh_degree=s["sh_degree"], backend=backend, **kw)
+    out = {"colors": colors, "alphas": alphas, "meta": meta}
+    if grads:
+        meta["means2d"].retain_grad()
+        g = torch.Generator().manual_seed(123)
+        wc = torch.rand(colors.shape, generator=g, dtype=colors.dtype)
+        loss = loss_weights[0] * (colors * wc).sum() + loss_weights[1] * (alphas * alphas).sum()
+        if "depths" in meta:
+            loss = loss + loss_weights[2] * meta["depths"].sum()
+        loss.backward()
+        out["grads"] = {k: s[k].grad for k in PARAMS}
+        out["grads"]["means2d"] = meta["means2d"].grad
+    return out
+
+
+def assert_grads_close(ga, gb, rel=2e-3):
+    for k in ga:
+        a, b = ga[k], gb[k]
+        assert a is not None and b is not None, k
+        assert torch.isfinite(a).all() and torch.isfinite(b).all(), k
+        scale = max(a.abs().max().item(), 1e-3)
+        err = (a - b).abs().max().item()
+        assert err <= rel * scale, f"{k}: max err {err:.3g} vs scale {scale:.3g}"
+
+
+def assert_images_close(a, b, atol=2e-5, depth_atol=2e-4):
+    torch.testing.assert_close(a["colors"], b["colors"], atol=atol, rtol=0)
+    torch.testing.assert_close(a["alphas"], b["alphas"], atol=atol, rtol=0)
+    if "depths" in a["meta"]:
+        torch.testing.assert_close(a["meta"]["depths"], b["meta"]["depths"], atol=depth_atol, rtol=0)
+
+
+# ---------------------------------------------------------------------------- projection
+
+def test_means2d_match_pinhole_projection():
+    sc = make_scene(N=20, C=2, dtype=torch.float64)
+    proj = project_gaussians(sc["means"], sc["quats"], sc["scales"], sc["opacities"],
+                             sc["viewmats"], sc["Ks"], sc["width"], sc["height"])
+    for c in range(2):
+        K = sc["Ks"][c].numpy()
+        intr = Intrinsics(sc["width"], sc["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+        view = View(intr, c2w_gl_from_viewmat(sc["viewmats"][c].numpy()))
+        uv, z = project_points(view, sc["means"].numpy())
+        np.testing.assert_allclose(proj.means2d[c].numpy(), uv, atol=1e-9)
+        np.testing.assert_allclose(proj.z[c].numpy(), z, atol=1e-9)
+
+
+def test_cov2d_is_jacobian_sandwich():
+    """conic^-1 - eps2d = J Sigma_cam J^T, J = d(pixel)/d(camera point) by autograd."""
+    sc = make_scene(N=5, dtype=torch.float64, spread=0.3)
+    proj = project_gaussians(sc["means"], sc["quats"], sc["scales"], sc["opacities"],
+                             sc["viewmats"], sc["Ks"], sc["width"], sc["height"], eps2d=0.3)
+    K, vm = sc["Ks"][0], sc["viewmats"][0]
+    q = sc["quats"] / sc["quats"].norm(dim=-1, keepdim=True)
+    for n in range(5):
+        w, x, y, z = q[n]
+        Rq = torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                           [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                           [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]],
+                          dtype=torch.float64)
+        S = Rq @ torch.diag(sc["scales"][n] ** 2) @ Rq.T
+        pc = vm[:3, :3] @ sc["means"][n] + vm[:3, 3]
+        J = torch.autograd.functional.jacobian(
+            lambda p: torch.stack([K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]]), pc)
+        cov = J @ vm[:3, :3] @ S @ vm[:3, :3].T @ J.T + 0.3 * torch.eye(2, dtype=torch.float64)
+        a, b, c = proj.conics[0, n]
+        conic = torch.stack([torch.stack([a, b]), torch.stack([b, c])])
+        torch.testing.assert_close(torch.linalg.inv(conic), cov, rtol=1e-9, atol=1e-9)
+        # radius covers the 3.33-sigma (or opacity) extent on each axis
+        ext = min(3.33, math.sqrt(2 * math.log(255 * float(sc["opacities"][n]))))
+        assert proj.radii_xy[0, n, 0] == math.ceil(ext * math.sqrt(cov[0, 0]))
+        assert proj.radii_xy[0, n, 1] == math.ceil(ext * math.sqrt(cov[1, 1]))
+
+
+def test_sh_evaluation_convention():
+    sc = make_scene(N=8, C=2, sh_degree=3, dtype=torch.float64)
+    rgb = eval_colors(sc["means"], sc["colors"], sc["viewmats"], 3)
+    assert rgb.shape == (2, 8, 3) and (rgb >= 0).all()
+    assert not torch.allclose(rgb[0], rgb[1])  # view dependent
+    rgb0 = eval_colors(sc["means"], sc["colors"][:, :1], sc["viewmats"], 0)
+    torch.testing.assert_close(rgb0[0], torch.clamp_min(SH_C0 * sc["colors"][:, 0] + 0.5, 0))
+    # degree 1 band: -C1*y*c1 + C1*z*c2 - C1*x*c3 with d the unit view direction
+    cols = torch.zeros(8, 4, 3, dtype=torch.float64)
+    cols[:, 3, 0] = 1.0
+    rgb1 = eval_colors(sc["means"], cols, sc["viewmats"], 1)
+    cam = -(sc["viewmats"][0, :3, :3].T @ sc["viewmats"][0, :3, 3])
+    d = sc["means"] - cam
+    d = d / d.norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(rgb1[0, :, 0], torch.clamp_min(-0.4886025119029199 * d[:, 0] + 0.5, 0))
+
+
+# ------------------------------------------------------------------- fast vs reference
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("seed,W,H,C", [(0, 37, 29, 1), (1, 40, 24, 2), (2, 17, 33, 3)])
+def test_cpu_matches_reference(seed, W, H, C):
+    sc = make_scene(N=80, W=W, H=H, C=C, seed=seed)
+    ref, fast = render(sc, "reference"), render(sc, "cpu")
+    assert fast["meta"]["backend"] == "cpu"
+    assert_images_close(fast, ref)
+    assert fast["alphas"].max() > 0.5  # the scene is not trivially empty
+    torch.testing.assert_close(fast["meta"]["radii"], ref["meta"]["radii"])
+    assert fast["meta"]["radii"].dtype == torch.int32
+    assert_grads_close(fast["grads"], ref["grads"])
+
+
+def test_torch_tiled_matches_reference():
+    sc = make_scene(N=80, W=41, H=27, C=2, seed=4, sh_degree=1)
+    ref, tiled = render(sc, "reference"), render(sc, "torch")
+    assert_images_close(tiled, ref)
+    assert_grads_close(tiled["grads"], ref["grads"])
+
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
+def test_cpu_matches_reference_sh(sh_degree):
+    sc = make_scene(N=60, C=2, seed=10 + sh_degree, sh_degree=sh_degree)
+    ref, fast = render(sc, "reference"), render(sc, "cpu")
+    assert_images_close(fast, ref)
+    assert_grads_close(fast["grads"], ref["grads"])
+
+
+@NEEDS_NUMBA
+def test_background_and_no_depth():
+    sc = make_scene(N=50, C=2, seed=5)
+    bg = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.0, 0.3]])
+    ref = render(sc, "reference", backgrounds=bg, render_depth=False)
+    fast = render(sc, "cpu", backgrounds=bg, render_depth=False)
+    assert "depths" not in fast["meta"]
+    assert_images_close(fast, ref)
+    assert_grads_close(fast["grads"], ref["grads"])
+    # background shows exactly through the transmittance
+    black = render(sc, "cpu", grads=False)
+    expect = black["colors"] + (1 - black["alphas"]) * bg[:, None, None, :]
+    torch.testing.assert_close(fast["colors"], expect, atol=1e-6, rtol=0)
+
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("alpha_max", [0.99, 0.999])
+def test_alpha_max_and_opaque_stack(alpha_max):
+    """Opaque Gaussians stacked in depth: alpha clamp, transmittance stop, clamped grads."""
+    sc = make_scene(N=40, seed=6, scale=0.3, spread=0.2)
+    sc["opacities"] = torch.full((40,), 0.9999)
+    ref = render(sc, "reference", alpha_max=alpha_max)
+    fast = render(sc, "cpu", alpha_max=alpha_max)
+    assert_images_close(fast, ref)
+    assert_grads_close(fast["grads"], ref["grads"])
+    assert fast["alphas"].max() >= 1 - 1e-3
+    # one opaque Gaussian: its centre pixel has alpha exactly alpha_max
+    one = make_scene(N=1, W=9, H=9, seed=0, scale=0.5)
+    one["means"] = torch.tensor([[0.0, 0.0, 0.0]])
+    one["opacities"] = torch.tensor([1.0])
+    one["Ks"] = torch.tensor([[[9.0, 0, 4.5], [0, 9.0, 4.5], [0, 0, 1]]])
+    out = render(one, "cpu", alpha_max=alpha_max)
+    assert abs(out["alphas"][0, 4, 4, 0].item() - alpha_max) < 1e-6
+    assert_grads_close(out["grads"], render(one, "reference", alpha_max=alpha_max)["grads"])
+
+
+@NEEDS_NUMBA
+def test_tile_size_does_not_change_result():
+    sc = make_scene(N=70, W=45, H=31, C=2, seed=7)
+    a, b = render(sc, "cpu", tile_size=8), render(sc, "cpu", tile_size=16)
+    assert_images_close(a, b, atol=1e-6, depth_atol=1e-5)
+    assert_grads_close(a["grads"], b["grads"], rel=1e-4)
+
+
+def test_gradcheck_reference_float64():
+    sc = make_scene(N=4, W=7, H=6, C=2, seed=8, sh_degree=1, dtype=torch.float64, scale=0.3,
+                    spread=0.5)
+    base = [sc[k].clone() for k in PARAMS]
+
+    def f(means, quats, scales, opacities, colors):
+        c, a, m = rasterization(means, quats, scales, opacities, colors, sc["viewmats"], sc["Ks"],
+                                sc["width"], sc["height"], sh_degree=1, backend="reference",
+                                backgrounds=torch.tensor([[0.1, 0.2, 0.3]] * 2, dtype=torch.float64))
+        return c, a, m["depths"]
+
+    inputs = tuple(t.requires_grad_() for t in base)
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+@NEEDS_NUMBA
+def test_cpu_float64_inputs_give_float64_outputs():
+    sc = make_scene(N=30, seed=9, dtype=torch.float64)
+    ref, fast = render(sc, "reference"), render(sc, "cpu")
+    assert fast["colors"].dtype == torch.float64
+    assert fast["grads"]["means"].dtype == torch.float64
+    assert_images_close(fast, ref)
+    assert_grads_close(fast["grads"], ref["grads"])
+
+
+# ------------------------------------------------------------------------- edge cases
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("backend", ["cpu", "torch", "reference"])
+def test_behind_camera_and_near_plane_no_nan(backend):
+    sc = make_scene(N=30, seed=11)
+    m = sc["means"].clone()
+    m[:10, 2] = -4.0 - torch.linspace(0.0, 2.0, 10)      # camera z ~ 0 (at/behind the camera)
+    m[10:12, 2] = -4.0 + 0.01                             # right at the near plane
+    m[12:14] = torch.tensor([0.0, 0.0, -4.0])           # exactly at the camera centre
+    m[14:16, 2] = -9.0                                  # far behind
+    sc["means"] = m
+    out = render(sc, backend)
+    for k in ("colors", "alphas"):
+        assert torch.isfinite(out[k]).all()
+    assert torch.isfinite(out["meta"]["depths"]).all()
+    for k, g in out["grads"].items():
+        assert torch.isfinite(g).all(), k
+    assert (out["meta"]["radii"][0, 12:16] == 0).all()
+
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_tiny_huge_scales_and_extreme_opacities(backend):
+    sc = make_scene(N=40, seed=12)
+    s = sc["scales"].clone()
+    s[:8] = 1e-8             # degenerate: eps2d keeps them a ~0.5 px blob
+    s[8:10] = 50.0           # covers everything (camera inside for some)
+    s[10:12, 0] = 1e-7       # flat discs
+    sc["scales"] = s
+    o = sc["opacities"].clone()
+    o[12:16] = 1e-6          # invisible: culled by opacity
+    o[16:20] = 1.0           # clamped at alpha_max
+    sc["opacities"] = o
+    out = render(sc, backend)
+    assert torch.isfinite(out["colors"]).all() and torch.isfinite(out["alphas"]).all()
+    for k, g in out["grads"].items():
+        assert torch.isfinite(g).all(), k
+    assert (out["meta"]["radii"][0, 12:16] == 0).all()
+    if backend == "cpu":
+        assert_images_close(out, render(sc, "reference", grads=False))
+
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("backend", ["cpu", "torch", "reference"])
+def test_empty_and_all_culled(backend):
+    sc = make_scene(N=0, C=2)
+    out = render(sc, backend)
+    assert out["colors"].shape == (2, sc["height"], sc["width"], 3)
+    assert (out["colors"] == 0).all() and (out["alphas"] == 0).all()
+    assert out["meta"]["means2d"].shape == (2, 0, 2) and out["meta"]["radii"].shape == (2, 0)
+    sc = make_scene(N=10, C=2)
+    sc["means"] = sc["means"] * 0 + torch.tensor([0.0, 0.0, -10.0])  # all behind both cameras
+    bg = torch.tensor([[0.3, 0.3, 0.3], [0.0, 1.0, 0.0]])
+    out = render(sc, backend, backgrounds=bg)
+    assert (out["meta"]["radii"] == 0).all()
+    torch.testing.assert_close(out["colors"], bg[:, None, None, :].expand_as(out["colors"]))
+    assert (out["meta"]["depths"] == 0).all()
+    for g in out["grads"].values():
+        assert g is not None and (g == 0).all()
+
+
+@NEEDS_NUMBA
+def test_gaussian_covering_full_image_and_odd_sizes():
+    for W, H in [(13, 11), (8, 8), (9, 17), (1, 1)]:
+        sc = make_scene(N=3, W=W, H=H, seed=13, scale=2.0, spread=0.1)
+        sc["opacities"] = torch.tensor([0.9, 0.6, 0.7])
+        sc["scales"] = torch.tensor([[4.0, 2.5, 3.0], [3.0, 4.5, 2.0], [2.5, 3.5, 5.0]])
+        ref, fast = render(sc, "reference"), render(sc, "cpu")
+        assert fast["colors"].shape == (1, H, W, 3)
+        assert (fast["alphas"] > 0.5).all()
+        assert_images_close(fast, ref)
+        assert_grads_close(fast["grads"], ref["grads"])
+
+
+@NEEDS_NUMBA
+def test_offscreen_gaussians_culled_but_edge_ones_kept():
+    sc = make_scene(N=4, W=20, H=20, seed=14, scale=0.05)
+    sc["means"] = torch.tensor([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [2.3, 0.0, 0.0], [0.0, -2.3, 0.0]])
+    sc["Ks"] = torch.tensor([[[18.0, 0, 10.0], [0, 18.0, 10.0], [0, 0, 1]]])
+    sc["viewmats"] = torch.tensor(look_viewmat((0, 0, -4.0)), dtype=torch.float32)[None]
+    ref, fast = render(sc, "reference"), render(sc, "cpu")
+    radii = fast["meta"]["radii"][0]
+    assert radii[0] > 0 and radii[1] == 0
+    assert_images_close(fast, ref)
+    assert_grads_close(fast["grads"], ref["grads"])
+
+
+# ------------------------------------------------------------------- backend selection
+
+def test_gsplat_never_imported_without_cuda():
+    if torch.cuda.is_available():
+        pytest.skip("CUDA present")
+    assert not gsplat_backend.available()
+    assert "CUDA" in gsplat_backend.unavailable_reason()
+    assert "gsplat" not in sys.modules
+    assert resolve_backend("auto", torch.device("cpu")) in ("cpu", "torch")
+    with pytest.raises(ValueError):
+        resolve_backend("vulkan", torch.device("cpu"))
+
+
+def test_numba_missing_falls_back_to_torch_with_warning(monkeypatch):
+    import engine.raster as raster
+    monkeypatch.setattr(raster_cpu, "_kernels", None)
+    monkeypatch.setattr(raster_cpu, "_kernels_error", ImportError("No module named 'numba'"))
+    monkeypatch.setattr(raster, "_warned", set())
+    sc = make_scene(N=30, seed=15)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        out = render(sc, "cpu")
+    assert out["meta"]["backend"] == "torch"
+    assert any("numba" in str(w.message) for w in rec)
+    assert_images_close(out, render(sc, "reference", grads=False))
+
+
+@pytest.mark.skipif(not gsplat_backend.available(), reason="needs CUDA + gsplat")
+def test_gsplat_matches_cpu():
+    sc = make_scene(N=200, W=64, H=48, C=2, seed=16, sh_degree=2, scale=0.05)
+    cpu_out = render(sc, "cpu" if raster_cpu.available() else "torch", alpha_max=0.99)
+    cuda = {k: (v.cuda() if torch.is_tensor(v) else v) for k, v in sc.items()}
+    gs = render(cuda, "gsplat")
+    assert gs["meta"]["backend"] == "gsplat"
+    # gsplat's alpha cap is its own (0.99 / 0.999): compare loosely
+    torch.testing.assert_close(gs["colors"].cpu(), cpu_out["colors"], atol=2e-2, rtol=0)
+    torch.testing.assert_close(gs["alphas"].cpu(), cpu_out["alphas"], atol=2e-2, rtol=0)
+    for k in PARAMS:
+        a, b = gs["grads"][k].cpu(), cpu_out["grads"][k]
+        cos = torch.nn.functional.cosine_similarity(a.reshape(-1), b.reshape(-1), dim=0)
+        assert cos > 0.95, k
+
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numba_projection_matches_torch_projection(dtype):
+    """Values and gradients of the hand-written projection backward, including depth-culled,
+    FOV-clamped (far off to the side) and degenerate-quaternion Gaussians."""
+    sc = make_scene(N=40, C=3, seed=17, dtype=dtype, spread=1.5)
+    m = sc["means"].clone()
+    m[:4, 2] = -4.0 - torch.tensor([0.0, 0.005, 1.0, 3.0], dtype=dtype)  # at / behind camera 0
+    m[4:8, 0] = torch.tensor([8.0, -9.0, 12.0, -7.0], dtype=dtype)      # outside 1.3x FOV
+    sc["means"] = m
+    q = sc["quats"].clone()
+    q[8] = 0.0
+    sc["quats"] = q
+    from engine.raster.cpu import project
+    outs = []
+    for fn in (project_gaussians, project):
+        ps = [sc[k].clone().requires_grad_() for k in ("means", "quats", "scales")]
+        p = fn(ps[0], ps[1], ps[2], sc["opacities"], sc["viewmats"], sc["Ks"], sc["width"],
+               sc["height"])
+        g = torch.Generator().manual_seed(3)
+        w1 = torch.randn(p.means2d.shape, generator=g, dtype=dtype)
+        w2 = torch.randn(p.conics.shape, generator=g, dtype=dtype)
+        w3 = torch.randn(p.z.shape, generator=g, dtype=dtype)
+        ((p.means2d * w1).sum() + (p.conics * w2).sum() + (p.z * w3).sum()).backward()
+        outs.append((p, [x.grad for x in ps]))
+    (pa, ga), (pb, gb) = outs
+    tol = dict(rtol=1e-5, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(pb.means2d, pa.means2d, **tol)
+    torch.testing.assert_close(pb.conics, pa.conics, **tol)
+    torch.testing.assert_close(pb.z, pa.z, **tol)
+    torch.testing.assert_close(pb.radii_xy, pa.radii_xy)
+    assert (pb.radii[0, :4] == 0).all() and (pb.means2d[0, :4] == 0).all()
+    assert (pb.radii[:, 9:] > 0).any()
+    for a, b in zip(ga, gb):
+        scale = a.abs().max().item()
+        assert (a - b).abs().max().item() <= (2e-4 if dtype == torch.float32 else 1e-9) * scale
+
+
+@NEEDS_NUMBA
+def test_numba_cache_is_per_import_name(tmp_path):
+    """Blender imports the engine as bl_ext.<repo>.bullettime4d.engine, the CLI as engine:
+    their numba caches must not share entries (a cached entry pickles the import name)."""
+    import importlib.util
+    from engine.raster import _kernels
+    spec = importlib.util.spec_from_file_location("bt4d_alias_pkg_kernels", _kernels.__file__)
+    alias = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(alias)
+    a = _kernels.rasterize_fwd._cache._cache_path
+    b = alias.rasterize_fwd._cache._cache_path
+    assert a != b
+    assert a.endswith("numba-engine.raster._kernels")
+    assert b.endswith("numba-bt4d_alias_pkg_kernels")
+
+
+def test_warmup_runs_a_tiny_render():
+    from engine.raster import warmup
+    assert warmup("cpu" if raster_cpu.available() else "torch") >= 0.0
