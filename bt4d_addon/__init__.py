@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import panel, preferences, properties, scene_build  # noqa: F401  (scene_build: helpers)
+from . import panel, panel_run, preferences, properties, scene_build  # noqa: F401  (scene_build: helpers)
 
 # The add-on's own module name ("bl_ext.<repo>.bullettime4d"): the AddonPreferences idname
 # and the key for bpy.utils.extension_path_user().
@@ -17,6 +17,7 @@ ADDON_PACKAGE = __package__.rpartition(".")[0]
 classes = (
     *preferences.classes,
     *properties.classes,
+    *panel_run.classes,
     *panel.classes,
 )
 
@@ -25,11 +26,16 @@ def register():
     for cls in classes:
         bpy.utils.register_class(cls)
     properties.register()
+    panel_run.register()
     preferences.register()
 
 
 def unregister():
+    from . import worker
+
+    worker.cancel_all()  # background jobs stop at their next step (checkpoints are kept)
     preferences.unregister()
+    panel_run.unregister()
     properties.unregister()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

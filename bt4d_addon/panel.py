@@ -74,20 +74,27 @@ class BT4D_PT_bullet_time(_BT4DPanel, Panel):
         draw_bullet_time(self.layout, context)
 
 
-# -- hooks for later stages -------------------------------------------------------------
+# -- hooks for later stages (filled by panel_run.py) --------------------------------------
 
 def draw_reconstruction(layout, context) -> None:
-    """Train button, progress and metrics (training issue)."""
+    """Reconstruct button, progress bar, live loss/PSNR/ETA, Cancel."""
+    from . import panel_run
+
+    panel_run.draw_reconstruction(layout, context)
 
 
 def draw_result(layout, context) -> None:
-    """Bring-back controls (bring-back issue)."""
-    layout.label(text="Train a reconstruction first", icon="INFO")
+    """Held-out metrics and Load Result."""
+    from . import panel_run
+
+    panel_run.draw_result(layout, context)
 
 
 def draw_bullet_time(layout, context) -> None:
-    """Capture-time control and render-path button (render issue)."""
-    layout.label(text="Bring a reconstruction back first", icon="INFO")
+    """Capture Time, freeze / real time, orbit camera, path render."""
+    from . import panel_run
+
+    panel_run.draw_bullet_time(layout, context)
 
 
 classes = (BT4D_PT_capture, BT4D_PT_reconstruction, BT4D_PT_result, BT4D_PT_bullet_time)

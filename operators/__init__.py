@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import bpy
 
-from . import import_capture
+from . import bullet_time, import_capture, load_result, reconstruct, render_path
 
-MODULES = (import_capture,)
+MODULES = (import_capture, reconstruct, load_result, render_path, bullet_time)
 
 
 def _classes():

@@ -1,0 +1,167 @@
+"""Sidebar contents for the Reconstruction, Result and Bullet Time panels (``panel.py``
+calls the ``draw_*`` functions below), and ``Scene.bt4d_run``: the live state of a
+reconstruction / path render (progress, loss, PSNR, ETA, status) and the metrics of the
+last run, which the worker's timer updates from the main thread.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.types import PropertyGroup
+
+STATUS_ITEMS = (
+    ("IDLE", "Idle", "Nothing has run yet"),
+    ("RUNNING", "Running", "A reconstruction is running in the background"),
+    ("FINISHED", "Finished", "The last reconstruction finished"),
+    ("CANCELLED", "Cancelled", "The last reconstruction was cancelled (its checkpoint is kept)"),
+    ("FAILED", "Failed", "The last reconstruction failed (see the message)"),
+)
+
+
+def _redraw(self, context):  # pragma: no cover - UI nicety
+    for win in getattr(context.window_manager, "windows", []):
+        for area in win.screen.areas:
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+
+
+class BT4D_RunState(PropertyGroup):
+    resume: BoolProperty(
+        name="Resume", default=True,
+        description="Continue from the run folder's checkpoint when its settings match; off: start over")
+    num_samples: IntProperty(
+        name="Time Samples", default=0, min=0, soft_max=400,
+        description="Capture-time samples stored for playback in Blender (0: automatic, about 150 per second)")
+    # live state ---------------------------------------------------------------------------
+    status: EnumProperty(name="Status", items=STATUS_ITEMS, default="IDLE")
+    stage: StringProperty(name="Stage")
+    progress: FloatProperty(name="Progress", min=0.0, max=1.0, subtype="FACTOR")
+    step: IntProperty(name="Step")
+    total_steps: IntProperty(name="Steps")
+    loss: FloatProperty(name="Loss", precision=4)
+    psnr: FloatProperty(name="PSNR", precision=2, description="Training PSNR of the last step (dB)")
+    eta_s: FloatProperty(name="ETA", unit="TIME_ABSOLUTE")
+    elapsed_s: FloatProperty(name="Elapsed", unit="TIME_ABSOLUTE")
+    num_gaussians: IntProperty(name="Gaussians")
+    message: StringProperty(name="Message")
+    run_dir: StringProperty(name="Run", subtype="DIR_PATH", description="Folder of the last reconstruction")
+    # metrics (engine.evaluate) ------------------------------------------------------------
+    has_metrics: BoolProperty(default=False)
+    metric_psnr: FloatProperty(name="PSNR", precision=2)
+    metric_ssim: FloatProperty(name="SSIM", precision=4)
+    metric_psnr_interframe: FloatProperty(name="PSNR between RGB frames", precision=2)
+    metric_psnr_dynamic: FloatProperty(name="PSNR dynamic regions", precision=2)
+    metric_frames: IntProperty(name="Eval frames")
+    train_seconds: FloatProperty(name="Train time", unit="TIME_ABSOLUTE")
+    # path render ---------------------------------------------------------------------------
+    render_running: BoolProperty(default=False)
+    render_progress: FloatProperty(name="Render", min=0.0, max=1.0, subtype="FACTOR")
+    render_message: StringProperty(name="Render message")
+
+
+def _fmt_time(s: float) -> str:
+    s = max(0.0, float(s))
+    if s >= 3600:
+        return f"{int(s // 3600)}h{int(s % 3600 // 60):02d}m"
+    if s >= 60:
+        return f"{int(s // 60)}m{int(s % 60):02d}s"
+    return f"{s:.0f}s"
+
+
+def draw_reconstruction(layout, context) -> None:
+    scene = context.scene
+    r = scene.bt4d_run
+    s = scene.bt4d
+    col = layout.column()
+    col.prop(r, "resume")
+    running = r.status == "RUNNING"
+    row = col.row(align=True)
+    row.enabled = bool(s.capture_dir) and not running
+    row.operator("bt4d.reconstruct", text="Reconstruct", icon="PLAY")
+    if r.status == "IDLE":
+        return
+    box = layout.box()
+    if running:
+        text = f"{r.stage or 'starting'} {r.step}/{r.total_steps}" if r.total_steps else (r.stage or "starting")
+        box.progress(factor=r.progress, type="BAR", text=text)
+        grid = box.grid_flow(columns=2, align=True)
+        grid.label(text=f"Loss {r.loss:.4f}")
+        grid.label(text=f"PSNR {r.psnr:.2f} dB")
+        grid.label(text=f"ETA {_fmt_time(r.eta_s)}")
+        grid.label(text=f"{r.num_gaussians} Gaussians")
+        box.operator("bt4d.cancel_reconstruction", text="Cancel", icon="CANCEL")
+    else:
+        icon = {"FINISHED": "CHECKMARK", "CANCELLED": "CANCEL", "FAILED": "ERROR"}.get(r.status, "INFO")
+        box.label(text=f"{r.status.title()}: {r.step}/{r.total_steps} steps, {_fmt_time(r.elapsed_s)}", icon=icon)
+        if r.message:
+            for line in r.message.splitlines()[:4]:
+                box.label(text=line)
+
+
+def draw_result(layout, context) -> None:
+    scene = context.scene
+    r = scene.bt4d_run
+    col = layout.column()
+    if r.has_metrics:
+        box = col.box()
+        box.label(text="Held-out evaluation", icon="SORTTIME")
+        g = box.grid_flow(columns=2, align=True)
+        g.label(text=f"PSNR {r.metric_psnr:.2f} dB")
+        g.label(text=f"SSIM {r.metric_ssim:.3f}")
+        g.label(text=f"Between frames {r.metric_psnr_interframe:.2f} dB")
+        g.label(text=f"Dynamic {r.metric_psnr_dynamic:.2f} dB")
+        box.label(text=f"{r.metric_frames} frames, trained {_fmt_time(r.train_seconds)}")
+    if r.run_dir:
+        col.prop(r, "run_dir", text="Run")
+    col.prop(r, "num_samples")
+    op = col.operator("bt4d.load_result", text="Load Result", icon="IMPORT")
+    if r.run_dir:
+        op.directory = r.run_dir
+    from . import gaussian_nodes as gn
+
+    results = gn.find_result_objects(scene)
+    if not results:
+        col.label(text="No reconstruction in the scene", icon="INFO")
+
+
+def draw_bullet_time(layout, context) -> None:
+    from . import gaussian_nodes as gn
+
+    scene = context.scene
+    r = scene.bt4d_run
+    results = gn.find_result_objects(scene)
+    obj = context.active_object if context.active_object in results else (results[0] if results else None)
+    if obj is None:
+        layout.label(text="Bring a reconstruction back first", icon="INFO")
+        return
+    col = layout.column()
+    mod = obj.modifiers[gn.MODIFIER_NAME]
+    col.label(text=obj.name, icon="OUTLINER_OB_POINTCLOUD")
+    try:
+        col.prop(mod, f'["{gn.input_identifier(mod.node_group, gn.CAPTURE_TIME)}"]', text="Capture Time")
+    except KeyError:
+        pass
+    row = col.row(align=True)
+    row.operator("bt4d.freeze_capture_time", text="Freeze Here", icon="PAUSE")
+    row.operator("bt4d.realtime_capture_time", text="Real Time", icon="PLAY")
+    col.operator("bt4d.add_orbit_camera", text="Add Orbit Camera", icon="CAMERA_DATA")
+    col.separator()
+    if r.render_running:
+        col.progress(factor=r.render_progress, type="BAR", text=r.render_message or "Rendering")
+        col.operator("bt4d.cancel_render_path", text="Cancel", icon="CANCEL")
+    else:
+        col.operator("bt4d.render_path", text="Render Camera Path", icon="RENDER_ANIMATION")
+        if r.render_message:
+            col.label(text=r.render_message)
+
+
+classes = (BT4D_RunState,)
+
+
+def register():
+    bpy.types.Scene.bt4d_run = bpy.props.PointerProperty(type=BT4D_RunState)
+
+
+def unregister():
+    if hasattr(bpy.types.Scene, "bt4d_run"):
+        del bpy.types.Scene.bt4d_run
