@@ -1,0 +1,80 @@
+"""``python -m engine train CAPTURE --out RUN``: train a 4D Gaussian scene (tqdm progress)."""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+
+HELP = "train a 4D Gaussian scene on a capture folder"
+
+
+def parse_overrides(items) -> dict:
+    """``key=value`` strings -> dict (values parsed as JSON when possible)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise SystemExit(f"--set expects key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except ValueError:
+            out[k.strip()] = v
+    return out
+
+
+def add_arguments(p) -> None:
+    p.add_argument("capture", help="capture folder (transforms.json)")
+    p.add_argument("--out", required=True, help="run directory (checkpoint, run.json, metrics)")
+    p.add_argument("--preset", default="fast", choices=["fast", "balanced", "quality"])
+    p.add_argument("--seconds", type=float, default=None, help="wall-clock budget; the schedule is sized to fit")
+    p.add_argument("--rgb-only", action="store_true", help="ignore spike streams")
+    p.add_argument("--restart", action="store_true", help="start over instead of resuming RUN/checkpoint.pt")
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when available)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
+                   help="override a preset field, e.g. --set iterations=500 (repeatable)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def main(args) -> int:
+    from tqdm import tqdm
+
+    from ..errors import CaptureError, RunError
+    from ..train import train
+
+    overrides = parse_overrides(args.overrides)
+    cancel = threading.Event()
+    bar = None
+
+    def progress(d):
+        nonlocal bar
+        if args.quiet:
+            return
+        if bar is None:
+            bar = tqdm(total=d["total_steps"], initial=d["step"] - 1, unit="step", dynamic_ncols=True, file=sys.stderr)
+        if bar.total != d["total_steps"]:
+            bar.total = d["total_steps"]
+        bar.update(d["step"] - bar.n)
+        bar.set_postfix(stage=d["stage"], loss=f"{d['loss']:.4f}", psnr=f"{d['psnr']:.2f}",
+                        gaussians=d["num_gaussians"], refresh=False)
+
+    def on_sigint(signum, frame):  # first Ctrl-C: checkpoint and stop cleanly
+        cancel.set()
+
+    old = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        summary = train(args.capture, args.out, preset=args.preset, seconds=args.seconds, rgb_only=args.rgb_only,
+                        resume=not args.restart, device=args.device, seed=args.seed, progress=progress,
+                        cancel=cancel, overrides=overrides)
+    except (CaptureError, RunError, KeyError, ValueError) as exc:
+        if bar is not None:
+            bar.close()
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        signal.signal(signal.SIGINT, old)
+    if bar is not None:
+        bar.close()
+    print(json.dumps(summary, indent=2))
+    return 0 if summary["status"] in ("finished", "cancelled") else 1

@@ -1,0 +1,274 @@
+"""A trained 4D scene: canonical Gaussians + deformation field, rendered at any instant.
+
+* :class:`Model4D` (torch) is shared by training and inference: ``attributes(t)`` gives the
+  deformed Gaussians at capture time ``t`` (seconds, continuous), ``render(...)`` rasterizes
+  them with :func:`engine.raster.rasterization`.
+* :func:`load_run` opens a run directory and returns a :class:`Scene4D` (numpy in, numpy out)
+  -- what the Blender side, the render CLI and the exporter call.
+* :func:`export_npz` / :func:`read_export` write and read the compact per-time cache.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .cameras import View
+from .checkpoint import load_checkpoint, read_run_json
+from .deformation import DeformationField
+from .errors import RunError
+from .gaussians import SH_C0, GaussianModel, num_sh_bases
+from .presets import TrainConfig
+
+
+def default_device(device=None) -> torch.device:
+    if device is None or device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def view_tensors(view: View, device) -> dict:
+    """Rasterizer inputs of one View: viewmat [1,4,4], K [1,3,3], campos [3], size, time."""
+    vm = torch.as_tensor(view.viewmat, dtype=torch.float32, device=device)[None]
+    K = torch.as_tensor(view.K, dtype=torch.float32, device=device)[None]
+    return {"viewmat": vm, "K": K, "width": int(view.intrinsics.width), "height": int(view.intrinsics.height),
+            "campos": torch.as_tensor(view.center, dtype=torch.float32, device=device), "time": float(view.time)}
+
+
+class Model4D(nn.Module):
+    """Canonical Gaussians (+ optional deformation field)."""
+
+    def __init__(self, gaussians: GaussianModel, deformation: DeformationField | None = None,
+                 background=(0.0, 0.0, 0.0), static_mask: torch.Tensor | None = None):
+        super().__init__()
+        self.gaussians = gaussians
+        self.deformation = deformation
+        self.background = tuple(float(b) for b in background)
+        self.use_deformation = deformation is not None
+        self.static_mask = static_mask  # optional bool [N]: Gaussians frozen in time
+
+    def attributes(self, t: float, campos=None, fine: torch.Tensor | None = None) -> dict:
+        """Deformed Gaussians at ``t``: means, quats, scales (linear), opacities, colors."""
+        g = self.gaussians
+        means, quats, log_scales, opac = g.means, g.quats, g.log_scales, g.opacity_logits
+        color_delta = None
+        if self.use_deformation and self.deformation is not None:
+            mask = None
+            if self.static_mask is not None and self.static_mask.shape[0] == means.shape[0]:
+                mask = ~self.static_mask
+            d = self.deformation(means, quats, log_scales, opac, t, fine=fine, mask=mask)
+            means, quats, log_scales, opac = d["means"], d["quats"], d["log_scales"], d["opacity_logits"]
+            color_delta = d["color_delta"]
+        colors = g.colors(means, campos)
+        if color_delta is not None:
+            colors = (colors + color_delta).clamp_min(0.0)
+        return {"means": means, "quats": quats, "scales": torch.exp(log_scales),
+                "opacities": torch.sigmoid(opac), "colors": colors}
+
+    def render(self, vt: dict, t: float | None = None, *, background=None, fine=None, backend="auto",
+               render_depth: bool = True):
+        """Render one view (``view_tensors`` dict) at time ``t`` (default: the view's time).
+
+        Returns (rgb [1,H,W,3], alpha [1,H,W,1], meta, attributes).
+        """
+        from .raster import rasterization
+
+        t = vt["time"] if t is None else float(t)
+        attrs = self.attributes(t, campos=vt["campos"], fine=fine)
+        bg = self.background if background is None else background
+        bgs = torch.as_tensor(bg, dtype=torch.float32, device=attrs["means"].device).reshape(1, 3)
+        rgb, alpha, meta = rasterization(
+            attrs["means"], attrs["quats"], attrs["scales"], attrs["opacities"], attrs["colors"],
+            vt["viewmat"], vt["K"], vt["width"], vt["height"], backgrounds=bgs, render_depth=render_depth,
+            backend=backend)
+        return rgb, alpha, meta, attrs
+
+    # ------------------------------------------------------------------ (de)serialisation
+    def state(self) -> dict:
+        return {
+            "gaussians": self.gaussians.state(),
+            "deformation": None if self.deformation is None else {
+                "config": self.deformation.config(), "state_dict": self.deformation.state_dict()},
+            "use_deformation": self.use_deformation,
+            "background": list(self.background),
+            "static_mask": None if self.static_mask is None else self.static_mask.cpu(),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, cfg: TrainConfig | None = None, device="cpu") -> "Model4D":
+        g = GaussianModel.from_state(state["gaussians"], cfg, device=device)
+        deform = None
+        if state.get("deformation") is not None:
+            deform = DeformationField.from_config(state["deformation"]["config"])
+            sd = dict(state["deformation"]["state_dict"])
+            # an extension's fine encoder (Eq. 10) is rebuilt by that extension: its weights
+            # wait in ``pending_fine_state`` for it
+            deform.pending_fine_state = {k[len("fine_encoder."):]: sd.pop(k) for k in list(sd)
+                                         if k.startswith("fine_encoder.")}
+            deform.load_state_dict(sd)
+            deform.to(device)
+        m = cls(g, deform, background=state.get("background", (0, 0, 0)))
+        m.use_deformation = bool(state.get("use_deformation", deform is not None))
+        sm = state.get("static_mask")
+        m.static_mask = None if sm is None else sm.to(device)
+        return m
+
+
+class Scene4D:
+    """A trained run, ready to sample and render (numpy interface)."""
+
+    def __init__(self, model: Model4D, run_dir: Path, info: dict, device="cpu"):
+        self.model = model.eval()
+        self.run_dir = Path(run_dir)
+        self.info = info
+        self.device = torch.device(device)
+        tr = info.get("time_range")
+        if tr is None and model.deformation is not None:
+            tr = model.deformation.time_range
+        self.time_range = tuple(float(x) for x in (tr or (0.0, 0.0)))
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.model.gaussians.num_gaussians
+
+    @property
+    def background(self):
+        return self.model.background
+
+    def gaussians_at(self, t: float) -> dict:
+        """Gaussians at capture time ``t`` as float32 numpy arrays.
+
+        means [N,3], quats [N,4] wxyz normalised, scales [N,3] linear, opacities [N],
+        colors [N,3] sRGB-encoded (from the SH DC term), sh [N,K,3].
+        """
+        with torch.no_grad():
+            a = self.model.attributes(float(t), campos=None)
+            q = a["quats"] / a["quats"].norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            g = self.model.gaussians
+            sh = g.sh[:, : num_sh_bases(g.active_sh_degree)]
+            return {"means": _np(a["means"]), "quats": _np(q), "scales": _np(a["scales"]),
+                    "opacities": _np(a["opacities"]), "colors": _np(a["colors"].clamp(0, 1)),
+                    "sh": _np(sh)}
+
+    def render(self, views: list[View], background=None, time: float | None = None) -> list[dict]:
+        """Render each View at its own time (or ``time``): rgb [H,W,3] sRGB-encoded, alpha, depth."""
+        out = []
+        with torch.no_grad():
+            for v in views:
+                vt = view_tensors(v, self.device)
+                rgb, alpha, meta, _ = self.model.render(vt, time, background=background)
+                depth = meta.get("depths")
+                out.append({
+                    "rgb": _np(rgb[0].clamp(0, 1)),
+                    "alpha": _np(alpha[0, ..., 0]),
+                    "depth": _np(depth[0, ..., 0]) if depth is not None else np.zeros(alpha.shape[1:3], np.float32),
+                })
+        return out
+
+    def export(self, times, path) -> Path:
+        return export_npz(self, times, path)
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().to("cpu", torch.float32).numpy()
+
+
+def load_run(run_dir, device="cpu") -> Scene4D:
+    """Open a run directory (``engine.train`` output); RunError if missing or corrupt."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunError(run_dir, "run directory does not exist")
+    device = default_device(device)
+    state = load_checkpoint(run_dir, map_location=device)
+    try:
+        model = Model4D.from_state(state["model"], None, device=device)
+    except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+        raise RunError(run_dir / "checkpoint.pt", f"checkpoint does not hold a usable model: {exc}") from exc
+    try:
+        info = read_run_json(run_dir)
+    except RunError:
+        info = {}
+    info = {**info, "time_range": state.get("time_range", info.get("time_range")),
+            "step": state.get("step"), "total_steps": state.get("total_steps")}
+    return Scene4D(model, run_dir, info, device=device)
+
+
+# ---------------------------------------------------------------------------------- export
+EXPORT_VERSION = 1
+_F16_MAX = 60000.0
+
+
+def _residual(values: np.ndarray, base: np.ndarray, tol: float):
+    """float16 residual from ``base`` where it round-trips within ``tol``, else float32 values."""
+    r = values - base[None]
+    if np.all(np.isfinite(r)) and np.abs(r).max(initial=0) < _F16_MAX:
+        r16 = r.astype(np.float16)
+        err = np.abs(r16.astype(np.float32) - r).max(initial=0)
+        if err <= tol:
+            return r16, "residual_f16"
+    return values.astype(np.float32), "absolute_f32"
+
+
+def export_npz(scene: Scene4D, times, path) -> Path:
+    """Write Gaussians at each of ``times`` to a compact .npz.
+
+    Keys: ``version``, ``times`` [T], canonical ``means, quats, scales, opacities, colors, sh``
+    (float32, at the canonical / static state), and per attribute that changes over time
+    ``<name>_t`` [T, N, ...] with ``<name>_mode`` = "residual_f16" (add to the canonical
+    array) or "absolute_f32". Attributes the deformation never changes have no ``_t`` entry.
+    """
+    path = Path(path)
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    with torch.no_grad():
+        g = scene.model.gaussians
+        canon = {"means": _np(g.means), "quats": _np(g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)),
+                 "scales": _np(g.scales), "opacities": _np(g.opacities), "colors": _np(g.colors().clamp(0, 1))}
+    arrays = {"version": np.array(EXPORT_VERSION), "times": times.astype(np.float32),
+              "time_range": np.asarray(scene.time_range, np.float32),
+              "sh": _np(g.sh[:, : num_sh_bases(g.active_sh_degree)]), **canon}
+    extent = float(np.ptp(canon["means"], axis=0).max()) if len(canon["means"]) else 1.0
+    tols = {"means": 1e-3 * max(extent, 1e-6), "quats": 2e-3, "scales": 1e-3 * max(extent, 1e-6),
+            "opacities": 2e-3, "colors": 2e-3}
+    per_time = {k: [] for k in canon}
+    for t in times:
+        a = scene.gaussians_at(float(t))
+        for k in canon:
+            per_time[k].append(a[k])
+    for k, seq in per_time.items():
+        stack = np.stack(seq) if len(seq) else np.zeros((0,) + canon[k].shape, np.float32)
+        if stack.size and np.array_equal(stack, np.broadcast_to(canon[k], stack.shape)):
+            continue
+        data, mode = _residual(stack, canon[k], tols[k])
+        arrays[f"{k}_t"] = data
+        arrays[f"{k}_mode"] = np.array(mode)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+    return path
+
+
+def read_export(path, index: int | None = None) -> dict:
+    """Read an export; with ``index`` return the Gaussians at ``times[index]`` (float32)."""
+    path = Path(path)
+    if not path.exists():
+        raise RunError(path, "export file does not exist")
+    try:
+        z = np.load(path, allow_pickle=False)
+        data = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise RunError(path, f"unreadable export: {exc}") from exc
+    if index is None:
+        return data
+    out = {}
+    for k in ("means", "quats", "scales", "opacities", "colors"):
+        if f"{k}_t" in data:
+            mode = str(data[f"{k}_mode"])
+            v = data[f"{k}_t"][index].astype(np.float32)
+            out[k] = v + data[k] if mode == "residual_f16" else v
+        else:
+            out[k] = data[k].astype(np.float32)
+    out["time"] = float(data["times"][index])
+    return out

@@ -1,0 +1,149 @@
+"""Training presets: one dataclass of hyper-parameters, three sizes for a 2-core CPU.
+
+Schedules are expressed as *fractions of the total step count* so that a wall-clock budget
+(``train(..., seconds=N)``) only has to pick a step count; everything else follows
+deterministically from it. ``overrides`` (a dict) patches fields by name.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+
+
+@dataclass
+class TrainConfig:
+    # ---- schedule -------------------------------------------------------------------
+    iterations: int = 1000            # total optimisation steps (static + deformation)
+    static_fraction: float = 0.3      # warm-up: canonical Gaussians only, no deformation
+    static_frames: str = "first"      # warm-up on the first RGB instant ("first") or on every frame ("all")
+    time_curriculum: float = 0.5      # fraction of the deformation stage over which frames are admitted in time order
+    batch_views: int = 1              # views rendered per step
+    expected_seconds: float = 90.0    # rough wall-clock on the demo capture, 2-core CPU
+
+    # ---- initialisation -------------------------------------------------------------
+    init: str = "auto"                # auto | ply | stereo | random
+    init_max_points: int = 6000
+    init_random_points: int = 3000
+    init_fill_stride: int = 3         # stereo holes: points at interpolated depth every N px (0: random fill)
+
+    # ---- Gaussians --------------------------------------------------------------------
+    sh_degree: int = 0                # final SH degree (grown one band per sh_step_fraction)
+    sh_step_fraction: float = 0.15
+    lr_means: float = 1.6e-3          # x scene extent, decays exponentially to lr_means_final
+    lr_means_final: float = 1.6e-5
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20
+    init_opacity: float = 0.1
+
+    # ---- densification (3DGS rules, schedule in fractions of `iterations`) ---------------
+    densify_from: float = 0.05
+    densify_until: float = 0.7
+    densify_every: int = 100          # steps
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01       # clone if max scale <= this * extent, else split
+    prune_opacity: float = 0.005
+    prune_big_world: float = 0.2      # prune if max scale > this * extent
+    opacity_reset_every: int = 0      # steps, 0 = never (short CPU schedules)
+    max_gaussians: int = 20000
+
+    # ---- deformation (HexPlane + MLP, paper Eq. 1, 5) ----------------------------------
+    hex_resolution: int = 24          # base spatial resolution of each plane axis
+    hex_multires: tuple = (1, 2)      # resolution multipliers
+    hex_features: int = 16            # channels per plane
+    time_resolution_per_frame: float = 1.0  # time cells = ceil(rgb instants * this) + 1
+    mlp_width: int = 64
+    mlp_depth: int = 1                # hidden layers of phi_d
+    deform_scale: bool = False        # DynTCG: no scale deformation unless it pays
+    deform_opacity: bool = False
+    deform_color: bool = False
+    lr_grid: float = 5e-2
+    lr_grid_final: float = 1.6e-3
+    lr_mlp: float = 5e-3
+    lr_mlp_final: float = 1.6e-4
+    tv_weight: float = 2e-4           # spatial plane total variation
+    time_smooth_weight: float = 1e-3  # second difference along t of the time planes
+    time_l1_weight: float = 1e-4      # time planes close to 1 (static by default)
+
+    # ---- loss -------------------------------------------------------------------------
+    lambda_dssim: float = 0.2
+    lambda_block: float = 0.5         # L1 of 4x4 average-pooled images (paper Eq. 20 block loss)
+    block_size: int = 4
+    lambda_depth: float = 0.0         # relative L1 to confident plane-sweep stereo depth of every frame pair
+    background: tuple = (0.0, 0.0, 0.0)
+
+    # ---- bookkeeping ------------------------------------------------------------------
+    checkpoint_every_s: float = 30.0
+    log_every: int = 1
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name: f for f in fields(cls)}
+        kwargs = {}
+        for k, v in d.items():
+            if k not in names:
+                continue
+            if isinstance(names[k].default, tuple) and isinstance(v, list):
+                v = tuple(v)
+            kwargs[k] = v
+        return cls(**kwargs)
+
+    def replace(self, **changes) -> "TrainConfig":
+        return apply_overrides(self, changes)
+
+
+def _fast() -> TrainConfig:
+    return TrainConfig()
+
+
+def _balanced() -> TrainConfig:
+    return TrainConfig(
+        iterations=2500, expected_seconds=300.0, sh_degree=1, init_max_points=10000,
+        densify_every=100, max_gaussians=30000, hex_resolution=32, mlp_width=96,
+        checkpoint_every_s=60.0,
+    )
+
+
+def _quality() -> TrainConfig:
+    return TrainConfig(
+        iterations=6000, expected_seconds=900.0, sh_degree=2, init_max_points=15000,
+        densify_every=150, max_gaussians=50000, hex_resolution=48, hex_features=24, mlp_width=128,
+        static_fraction=0.25, checkpoint_every_s=120.0,
+    )
+
+
+PRESETS = {"fast": _fast, "balanced": _balanced, "quality": _quality}
+
+
+def apply_overrides(cfg: TrainConfig, overrides: dict | None) -> TrainConfig:
+    """A copy of ``cfg`` with fields replaced; unknown names raise ``KeyError``."""
+    if not overrides:
+        return dataclasses.replace(cfg)
+    names = {f.name: f for f in fields(TrainConfig)}
+    changes = {}
+    for k, v in overrides.items():
+        if k not in names:
+            raise KeyError(f"unknown training option {k!r}; known: {', '.join(sorted(names))}")
+        default = names[k].default
+        if isinstance(default, tuple) and isinstance(v, list):
+            v = tuple(v)
+        elif isinstance(default, bool):
+            v = bool(v)
+        elif isinstance(default, int) and not isinstance(default, bool):
+            v = int(v)
+        elif isinstance(default, float):
+            v = float(v)
+        changes[k] = v
+    return dataclasses.replace(cfg, **changes)
+
+
+def get_preset(name: str = "fast", overrides: dict | None = None) -> TrainConfig:
+    if name not in PRESETS:
+        raise KeyError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return apply_overrides(PRESETS[name](), overrides)

@@ -1,0 +1,595 @@
+"""Coarse-stage 4D Gaussian training on the train cameras' RGB frames.
+
+Two stages (4D Gaussians, Wu et al.; paper's "coarse DSR + L_frame"):
+
+1. static warm-up: canonical Gaussians only, trained on every RGB frame;
+2. deformation: a HexPlane deformation field (``engine.deformation``) deforms the
+   canonical Gaussians to each frame's capture time; both are optimised jointly.
+
+Each step renders one random train frame (a per-epoch permutation, seeded by ``seed``) and
+minimises a list of loss terms (:class:`LossTerm`): L1 + lambda * D-SSIM on the RGB frame
+plus the deformation regularisers. The spike branch adds its own terms through
+:func:`register_loss_factory` (ignored with ``rgb_only=True``).
+
+The schedule is a function of the total step count only (``engine.presets``). With a
+wall-clock budget (``seconds``), the step count is chosen once, up front, from the measured
+cost of a few throw-away steps on a copy of the model; the budget is also enforced as a hard
+stop (reported as ``stopped_by_budget``).
+"""
+from __future__ import annotations
+
+import copy
+import datetime as _dt
+import math
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint, update_run_json
+from .deformation import make_field
+from .errors import RunError
+from .gaussians import GaussianModel
+from .init_points import initial_points, stereo_depth_priors
+from .model import Model4D, default_device, view_tensors
+from .presets import TrainConfig, get_preset
+
+# ---------------------------------------------------------------------------------- losses
+
+
+@dataclass
+class LossTerm:
+    """One term of the training objective: ``weight * fn(ctx)``; ``fn`` may return None."""
+
+    name: str
+    weight: float
+    fn: Callable[["StepContext"], torch.Tensor | None]
+    stages: tuple = ("static", "deform")
+
+
+@dataclass
+class StepContext:
+    trainer: "Trainer"
+    step: int
+    stage: str
+    item: dict            # the train frame: view tensors + "image" [1,H,W,3] + "index"
+    rgb: torch.Tensor     # rendered [1,H,W,3]
+    alpha: torch.Tensor   # [1,H,W,1]
+    meta: dict
+    attrs: dict           # deformed Gaussians used for the render
+
+
+_LOSS_FACTORIES: list[Callable[["Trainer"], list[LossTerm]]] = []
+
+
+def register_loss_factory(factory: Callable[["Trainer"], list[LossTerm]]) -> None:
+    """Add a factory ``(trainer) -> [LossTerm]`` called when a (non rgb_only) run starts."""
+    if factory not in _LOSS_FACTORIES:
+        _LOSS_FACTORIES.append(factory)
+
+
+def _l1(ctx: StepContext):
+    return (ctx.rgb - ctx.item["image"]).abs().mean()
+
+
+def _dssim(ctx: StepContext):
+    from pytorch_msssim import ssim
+
+    pred = ctx.rgb.permute(0, 3, 1, 2)
+    gt = ctx.item["image"].permute(0, 3, 1, 2)
+    if min(pred.shape[-2:]) < 11:
+        return None
+    return 1.0 - ssim(pred, gt, data_range=1.0, size_average=True)
+
+
+def _block_l1(ctx: StepContext):
+    """L1 between 4x4 average-pooled images (the paper's block supervision, Eq. 20): a
+    wider basin of attraction for displaced objects than per-pixel L1."""
+    k = ctx.trainer.cfg.block_size
+    pred = ctx.rgb.permute(0, 3, 1, 2)
+    if min(pred.shape[-2:]) < 2 * k:
+        return None
+    gt = ctx.item["image"].permute(0, 3, 1, 2)
+    return (F.avg_pool2d(pred, k) - F.avg_pool2d(gt, k)).abs().mean()
+
+
+def _stereo_depth(ctx: StepContext):
+    """Relative L1 between the rendered expected depth and confident stereo depth (the
+    calibrated pair sees every RGB instant twice: geometry the eval viewpoint relies on)."""
+    target = ctx.item.get("stereo_depth")
+    depth = ctx.meta.get("depths")
+    if target is None or depth is None:
+        return None
+    m = ctx.item["stereo_mask"]
+    gt = target[m]
+    return ((depth[0, ..., 0][m] - gt).abs() / gt).mean()
+
+
+def _deform_reg(ctx: StepContext):
+    d = ctx.trainer.model.deformation
+    cfg = ctx.trainer.cfg
+    if d is None or not ctx.trainer.model.use_deformation:
+        return None
+    return d.regularization(cfg.tv_weight, cfg.time_smooth_weight, cfg.time_l1_weight)
+
+
+def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
+    terms = [LossTerm("l1", 1.0 - cfg.lambda_dssim, _l1)]
+    if cfg.lambda_dssim > 0:
+        terms.append(LossTerm("dssim", cfg.lambda_dssim, _dssim))
+    if cfg.lambda_block > 0:
+        terms.append(LossTerm("block_l1", cfg.lambda_block, _block_l1))
+    if cfg.lambda_depth > 0:
+        terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
+    terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
+    return terms
+
+
+# ---------------------------------------------------------------------------------- helpers
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _load_capture(capture):
+    if isinstance(capture, (str, os.PathLike)):
+        from .capture import load_capture
+
+        return load_capture(capture)
+    return capture
+
+
+def _capture_path(capture) -> str | None:
+    root = getattr(capture, "root", None)
+    return str(Path(root).resolve()) if root is not None else None
+
+
+def train_frames(capture) -> list:
+    """The RGB frames of cameras with role 'train'."""
+    out = []
+    for f in capture.frames:
+        cam = capture.cameras.get(f.camera) if hasattr(capture, "cameras") else None
+        if cam is not None and getattr(cam, "role", "train") != "train":
+            continue
+        out.append(f)
+    return out
+
+
+def scene_extent(points: np.ndarray, centers: np.ndarray) -> float:
+    """Scene radius: the larger of 3DGS's camera radius and the points' robust half-diagonal."""
+    cam = 0.0
+    if len(centers):
+        c = centers.mean(0)
+        cam = float(np.linalg.norm(centers - c, axis=1).max()) * 1.1
+    pts = 0.0
+    if len(points) >= 4:
+        lo, hi = np.percentile(points, 2, axis=0), np.percentile(points, 98, axis=0)
+        pts = float(np.linalg.norm(hi - lo)) / 2
+    return max(cam, pts, 1e-3)
+
+
+def robust_bounds(points: np.ndarray, margin: float = 0.1):
+    lo, hi = np.percentile(points, 1, axis=0), np.percentile(points, 99, axis=0)
+    pad = (hi - lo) * margin + 1e-6
+    return lo - pad, hi + pad
+
+
+def _config_key(cfg: TrainConfig, seed: int, rgb_only: bool, capture_path: str | None) -> dict:
+    d = cfg.to_dict()
+    for k in ("checkpoint_every_s", "log_every", "expected_seconds"):
+        d.pop(k, None)
+    return {"config": d, "seed": int(seed), "rgb_only": bool(rgb_only), "capture": capture_path}
+
+
+# ---------------------------------------------------------------------------------- trainer
+class Trainer:
+    """Holds the data, model and optimisers of one run; :meth:`step` does one iteration."""
+
+    def __init__(self, capture, cfg: TrainConfig, *, device, seed: int = 0, rgb_only: bool = False,
+                 total_steps: int | None = None):
+        self.capture = capture
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.seed = int(seed)
+        self.rgb_only = bool(rgb_only)
+        self.total_steps = int(total_steps or cfg.iterations)
+        frames = train_frames(capture)
+        if not frames:
+            raise RunError(_capture_path(capture) or "capture", "the capture has no train RGB frames")
+        self.items = []
+        for i, f in enumerate(frames):
+            vt = view_tensors(capture.view(f), self.device)
+            img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
+            if img.shape[:2] != (vt["height"], vt["width"]):
+                raise RunError(getattr(f, "path", "frame"), f"image is {img.shape[1]}x{img.shape[0]} but its camera "
+                               f"says {vt['width']}x{vt['height']}")
+            vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(self.device)[None]
+            vt["index"] = i
+            vt["camera"] = f.camera
+            self.items.append(vt)
+        if cfg.lambda_depth > 0:
+            priors = stereo_depth_priors(capture, frames)
+            for f, it in zip(frames, self.items):
+                if id(f) in priors and priors[id(f)][1].sum() >= 16:
+                    d, ok = priors[id(f)]
+                    it["stereo_depth"] = torch.from_numpy(d).to(self.device)
+                    it["stereo_mask"] = torch.from_numpy(ok).to(self.device)
+        self.frame_times = sorted({round(float(f.time), 9) for f in frames})
+        tr = getattr(capture, "time_range", None)
+        self.time_range = (float(tr[0]), float(tr[1])) if tr else (min(self.frame_times), max(self.frame_times))
+        self.model: Model4D | None = None
+        self.deform_opt: torch.optim.Adam | None = None
+        self.loss_terms = default_loss_terms(cfg)
+        # extension hooks (the spike branch): called with the trainer once the deformation
+        # field exists (new run or resumed), e.g. to set ``field.fine_encoder`` and call
+        # :meth:`add_deformation_parameters`; ``fine_provider(item) -> [N, W] | None`` feeds
+        # the Eq. 10 fine feature of each step's render.
+        self.deformation_hooks: list[Callable[["Trainer"], None]] = []
+        self.fine_provider: Callable[[dict], torch.Tensor | None] | None = None
+        if not self.rgb_only:
+            for factory in _LOSS_FACTORIES:
+                self.loss_terms.extend(factory(self) or [])
+        self.init_info: dict = {}
+        self.extent = 1.0
+        self.last_losses: dict = {}
+        self._carried_to = -math.inf  # latest frame time whose motion was carried forward
+
+    # ---- schedule (a pure function of total_steps) --------------------------------------
+    @property
+    def static_steps(self) -> int:
+        return int(round(self.cfg.static_fraction * self.total_steps))
+
+    def stage_of(self, step: int) -> str:
+        return "static" if step < self.static_steps else "deform"
+
+    def densify_schedule(self):
+        lo = int(self.cfg.densify_from * self.total_steps)
+        hi = int(self.cfg.densify_until * self.total_steps)
+        every = max(1, min(self.cfg.densify_every, max(1, (hi - lo) // 3)))
+        return lo, hi, every
+
+    def time_window(self, step: int) -> float:
+        """Latest capture time trained on at ``step`` (time curriculum of the deformation stage).
+
+        The static warm-up sees the first RGB instant only (``static_frames="first"``, the
+        canonical scene is the scene at t0) or every frame (``"all"``). The deformation stage
+        then widens the window from t0 to the last frame over ``time_curriculum`` of its steps,
+        so each newly admitted frame starts from the motion of the frames before it (fast
+        objects move less than their size between neighbouring frames, so gradients find them).
+        """
+        t0, t1 = self.frame_times[0], self.frame_times[-1]
+        if self.stage_of(step) == "static":
+            return t0 if self.cfg.static_frames == "first" and self.cfg.static_fraction < 1.0 else t1
+        if self.cfg.time_curriculum <= 0:
+            return t1
+        s0 = self.static_steps
+        p = (step - s0) / max(1, self.total_steps - s0)
+        return t0 + (t1 - t0) * min(1.0, p / self.cfg.time_curriculum)
+
+    def frame_pool(self, step: int) -> list[int]:
+        t_max = self.time_window(step) + 1e-9
+        pool = [i for i, it in enumerate(self.items) if it["time"] <= t_max]
+        return pool or list(range(len(self.items)))
+
+    def frame_index(self, step: int) -> int:
+        pool = self.frame_pool(step)
+        if len(pool) == len(self.items):  # every frame once per epoch
+            n = len(pool)
+            epoch, k = divmod(step, n)
+            return int(np.random.default_rng([self.seed, epoch]).permutation(n)[k])
+        return pool[int(np.random.default_rng([self.seed, step, 7]).integers(len(pool)))]
+
+    # ---- setup --------------------------------------------------------------------------
+    def init_model(self) -> None:
+        torch.manual_seed(self.seed)
+        cfg = self.cfg
+        pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
+                             seed=self.seed, fill_stride=cfg.init_fill_stride)
+        self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
+        centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3] for it in self.items])
+        self.extent = scene_extent(pts.xyz, centers)
+        g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=self.device)
+        g.setup_optimizer(cfg, self.extent)
+        self.model = Model4D(g, None, background=cfg.background)
+        self.model.use_deformation = False
+
+    def start_deformation(self) -> None:
+        """Create the deformation field around the current canonical Gaussians."""
+        g = self.model.gaussians
+        means = g.means.detach().cpu().numpy()
+        lo, hi = robust_bounds(means)
+        field = make_field(self.cfg, lo, hi, self.time_range, self.frame_times, seed=self.seed).to(self.device)
+        self.model.deformation = field
+        self.model.use_deformation = True
+        self._make_deform_opt()
+        for hook in self.deformation_hooks:
+            hook(self)
+
+    def _make_deform_opt(self) -> None:
+        d = self.model.deformation
+        groups = [{"params": d.grid_parameters(), "lr": self.cfg.lr_grid, "name": "grid"},
+                  {"params": d.mlp_parameters(), "lr": self.cfg.lr_mlp, "name": "mlp"}]
+        self.deform_opt = torch.optim.Adam(groups, lr=0.0)
+
+    def _carry_forward(self, t_max: float) -> None:
+        """When the time window grows past frames not trained yet, start their deformation
+        from the latest trained one: copy that time cell of every time plane forward."""
+        admitted = [t for t in self.frame_times if t <= t_max + 1e-9]
+        t_prev = admitted[-1]
+        if t_prev <= self._carried_to:
+            return
+        d = self.model.deformation
+        last = self._carried_to
+        self._carried_to = t_prev
+        if last == -math.inf:
+            return
+        u = (d.normalize_time(last) + 1.0) / 2.0
+        with torch.no_grad():
+            for p in d.grid.temporal:
+                T = p.shape[-2]
+                c = min(T - 1, int(math.ceil(u * (T - 1) - 1e-6)))
+                if c < T - 1:
+                    p[:, :, c + 1:, :] = p[:, :, c:c + 1, :]
+
+    def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
+        """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
+        if self.deform_opt is None:
+            raise RuntimeError("the deformation stage has not started")
+        self.deform_opt.add_param_group({"params": list(params), "lr": lr, "name": name})
+
+    def _update_lrs(self, step: int) -> None:
+        self.model.gaussians.update_learning_rate(step / max(1, self.total_steps - 1))
+        if self.deform_opt is not None:
+            s0 = self.static_steps
+            p = min(1.0, max(0.0, (step - s0) / max(1, self.total_steps - s0 - 1)))
+            for grp in self.deform_opt.param_groups:
+                if grp["name"] == "grid":
+                    grp["lr"] = math.exp(math.log(self.cfg.lr_grid) * (1 - p) + math.log(self.cfg.lr_grid_final) * p)
+                elif grp["name"] == "mlp":
+                    grp["lr"] = math.exp(math.log(self.cfg.lr_mlp) * (1 - p) + math.log(self.cfg.lr_mlp_final) * p)
+
+    # ---- one iteration --------------------------------------------------------------------
+    def step(self, step: int) -> dict:
+        cfg = self.cfg
+        model = self.model
+        g = model.gaussians
+        stage = self.stage_of(step)
+        if stage == "deform" and model.deformation is None:
+            self.start_deformation()
+        if cfg.sh_degree > 0 and cfg.sh_step_fraction > 0:
+            want = min(cfg.sh_degree, int(step / max(1, cfg.sh_step_fraction * self.total_steps)))
+            while g.active_sh_degree < want:
+                g.oneup_sh_degree()
+        self._update_lrs(step)
+        if stage == "deform" and self.cfg.time_curriculum > 0:
+            self._carry_forward(self.time_window(step))
+        item = self.items[self.frame_index(step)]
+        fine = self.fine_provider(item) if (self.fine_provider is not None and stage == "deform") else None
+        rgb, alpha, meta, attrs = model.render(item, fine=fine)
+        means2d = meta.get("means2d")
+        if means2d is not None and means2d.requires_grad:
+            means2d.retain_grad()
+        ctx = StepContext(self, step, stage, item, rgb, alpha, meta, attrs)
+        total = 0.0
+        losses = {}
+        for term in self.loss_terms:
+            if stage not in term.stages or term.weight == 0:
+                continue
+            val = term.fn(ctx)
+            if val is None:
+                continue
+            losses[term.name] = float(val.detach())
+            total = total + term.weight * val
+        g.optimizer.zero_grad(set_to_none=True)
+        if self.deform_opt is not None:
+            self.deform_opt.zero_grad(set_to_none=True)
+        total.backward()
+
+        # densification statistics and schedule
+        lo, hi, every = self.densify_schedule()
+        if step < hi and means2d is not None and means2d.grad is not None:
+            g.add_densification_stats(means2d.grad, meta["radii"], item["width"], item["height"])
+        g.optimizer.step()
+        if self.deform_opt is not None and stage == "deform":
+            self.deform_opt.step()
+        info = {}
+        if lo <= step < hi and step > 0 and (step - lo) % every == 0 and step != lo:
+            gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
+            info = g.densify_and_prune(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
+                                       min_opacity=cfg.prune_opacity, max_world_scale=cfg.prune_big_world,
+                                       max_gaussians=cfg.max_gaussians, generator=gen if self.device.type == "cpu" else None)
+        if cfg.opacity_reset_every and step > 0 and step % cfg.opacity_reset_every == 0 and step < hi:
+            g.reset_opacity()
+        with torch.no_grad():
+            mse = float(((rgb.detach().clamp(0, 1) - item["image"]) ** 2).mean())
+        self.last_losses = losses
+        return {"loss": float(total.detach()), "psnr": -10.0 * math.log10(max(mse, 1e-10)), "stage": stage,
+                "losses": losses, "densify": info}
+
+    # ---- state ------------------------------------------------------------------------------
+    def state(self, step: int) -> dict:
+        return {
+            "model": self.model.state(),
+            "deform_optimizer": None if self.deform_opt is None else self.deform_opt.state_dict(),
+            "step": int(step),
+            "total_steps": int(self.total_steps),
+            "time_range": list(self.time_range),
+            "frame_times": list(self.frame_times),
+            "extent": self.extent,
+            "init": self.init_info,
+            "gaussians": self.model.gaussians.num_gaussians,
+            "carried_to": self._carried_to,
+        }
+
+    def load_state(self, state: dict) -> int:
+        self.total_steps = int(state["total_steps"])
+        self.extent = float(state.get("extent", 1.0))
+        self.init_info = state.get("init", {})
+        self._carried_to = float(state.get("carried_to", -math.inf))
+        self.model = Model4D.from_state(state["model"], self.cfg, device=self.device)
+        if self.model.deformation is not None:
+            self._make_deform_opt()
+            for hook in self.deformation_hooks:
+                hook(self)
+            if state.get("deform_optimizer") is not None:
+                self.deform_opt.load_state_dict(state["deform_optimizer"])
+        return int(state["step"])
+
+
+# ---------------------------------------------------------------------------------- budget
+def _measure_step_seconds(trainer: Trainer, n_static: int = 4, n_deform: int = 4) -> tuple[float, float]:
+    """Median seconds per step in each stage, from throw-away steps on a copy of the model."""
+    probe = copy.copy(trainer)
+    probe.model = copy.deepcopy(trainer.model)
+    probe.model.gaussians.setup_optimizer(trainer.cfg, trainer.extent)
+    probe.deform_opt = None
+    probe.total_steps = 10 ** 6
+    times = {}
+    for stage, n in (("static", n_static), ("deform", n_deform)):
+        probe.cfg = copy.copy(trainer.cfg)
+        probe.cfg.static_fraction = 1.0 if stage == "static" else 0.0
+        probe.cfg.densify_from = probe.cfg.densify_until = 2.0  # no densification in the probe
+        times[stage] = []
+        for i in range(n):
+            t0 = time.perf_counter()
+            probe.step(i)
+            times[stage].append(time.perf_counter() - t0)
+    med = lambda v: float(np.median(v[1:] if len(v) > 1 else v))  # noqa: E731 (first call warms up)
+    return med(times["static"]), med(times["deform"])
+
+
+def steps_for_budget(seconds: float, t_static: float, t_deform: float, cfg: TrainConfig,
+                     growth: float = 1.5, reserve_s: float = 0.0) -> int:
+    """Steps that fit in ``seconds`` given per-step costs (Gaussian growth factored in)."""
+    per = (cfg.static_fraction * t_static + (1 - cfg.static_fraction) * t_deform) * growth
+    return max(20, int((max(0.0, seconds - reserve_s)) / max(per, 1e-4)))
+
+
+# ---------------------------------------------------------------------------------- train()
+def train(capture, out_dir, *, preset: str = "fast", seconds: float | None = None, rgb_only: bool = False,
+          resume: bool = True, device=None, seed: int = 0, progress=None, cancel=None,
+          overrides: dict | None = None) -> dict:
+    """Train a 4D Gaussian scene on ``capture`` (path or Capture) into ``out_dir``.
+
+    Returns a summary dict (status finished | cancelled | failed, step, total_steps,
+    train_seconds, num_gaussians, device, run_dir, final psnr/loss, init). See module doc.
+    """
+    dev = default_device(device)
+    threads = torch.get_num_threads()
+    if dev.type == "cpu":
+        # Our tensors are small (N ~ 1e4): a second intra-op thread gains nothing when the
+        # machine is idle and, with OpenMP spin-waits, costs 10x+ when the cores are shared.
+        torch.set_num_threads(1)
+    try:
+        return _train(capture, out_dir, preset=preset, seconds=seconds, rgb_only=rgb_only, resume=resume, dev=dev,
+                      seed=seed, progress=progress, cancel=cancel, overrides=overrides)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, progress, cancel, overrides) -> dict:
+    t_start = time.perf_counter()
+    run_dir = Path(out_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    cap = _load_capture(capture)
+    cfg = get_preset(preset, overrides)
+    torch.manual_seed(seed)
+    np.random.seed(seed % (2 ** 32))
+    cap_path = _capture_path(cap)
+    key = _config_key(cfg, seed, rgb_only, cap_path)
+    trainer = Trainer(cap, cfg, device=dev, seed=seed, rgb_only=rgb_only)
+
+    start_step = 0
+    prior_seconds = 0.0
+    resumed = False
+    ckpt_path = run_dir / CHECKPOINT
+    if resume and ckpt_path.exists():
+        try:
+            state = load_checkpoint(run_dir, map_location=dev)
+        except RunError:
+            state = None
+        if state is not None and state.get("config_key") == key:
+            start_step = trainer.load_state(state)
+            prior_seconds = float(state.get("train_seconds", 0.0))
+            resumed = True
+    if not resumed:
+        trainer.init_model()
+        if seconds is not None:
+            t_s, t_d = _measure_step_seconds(trainer)
+            elapsed = time.perf_counter() - t_start
+            trainer.total_steps = steps_for_budget(seconds, t_s, t_d, cfg, reserve_s=elapsed + 1.0)
+    total = trainer.total_steps
+    budget_end = (t_start + float(seconds)) if seconds is not None else None
+
+    run_info = {
+        "capture": cap_path, "preset": preset, "config": cfg.to_dict(), "overrides": overrides or {},
+        "seed": seed, "rgb_only": rgb_only, "device": str(dev), "status": "running", "step": start_step,
+        "total_steps": total, "train_seconds": prior_seconds, "created": _now(), "time_range": list(trainer.time_range),
+        "init": trainer.init_info, "seconds_budget": seconds, "resumed_from": start_step if resumed else None,
+        "host": platform.node(),
+    }
+    if resumed:
+        old = {}
+        try:
+            from .checkpoint import read_run_json
+
+            old = read_run_json(run_dir)
+        except RunError:
+            pass
+        run_info["created"] = old.get("created", run_info["created"])
+    update_run_json(run_dir, **run_info)
+
+    def snapshot(step: int, status: str, train_seconds: float) -> None:
+        st = trainer.state(step)
+        st.update({"config_key": key, "config": cfg.to_dict(), "train_seconds": train_seconds, "status": status,
+                   "preset": preset, "seed": seed})
+        save_checkpoint(run_dir, st)
+
+    status = "finished"
+    stopped_by_budget = False
+    loop_t0 = time.perf_counter()
+    last_ckpt = loop_t0
+    step = start_step
+    out = {"loss": float("nan"), "psnr": float("nan")}
+    try:
+        while step < total:
+            if cancel is not None and cancel.is_set():
+                status = "cancelled"
+                break
+            if budget_end is not None and time.perf_counter() > budget_end and step > start_step:
+                stopped_by_budget = True
+                break
+            out = trainer.step(step)
+            step += 1
+            now = time.perf_counter()
+            if progress is not None:
+                el = now - loop_t0
+                rate = el / max(1, step - start_step)
+                progress({"step": step, "total_steps": total, "stage": out["stage"], "loss": out["loss"],
+                          "psnr": out["psnr"], "elapsed_s": prior_seconds + (now - t_start),
+                          "eta_s": rate * (total - step), "num_gaussians": trainer.model.gaussians.num_gaussians})
+            if now - last_ckpt >= cfg.checkpoint_every_s and step < total:
+                snapshot(step, "running", prior_seconds + now - t_start)
+                update_run_json(run_dir, step=step, train_seconds=prior_seconds + now - t_start)
+                last_ckpt = time.perf_counter()
+    except BaseException as exc:
+        train_seconds = prior_seconds + time.perf_counter() - t_start
+        update_run_json(run_dir, status="failed", step=step, train_seconds=train_seconds,
+                        error=f"{exc.__class__.__name__}: {exc}")
+        raise
+    train_seconds = prior_seconds + time.perf_counter() - t_start
+    snapshot(step, status, train_seconds)
+    summary = {
+        "status": status, "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
+        "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),
+        "preset": preset, "loss": out.get("loss"), "psnr": out.get("psnr"), "init": trainer.init_info,
+        "stopped_by_budget": stopped_by_budget, "resumed_from": start_step if resumed else None,
+    }
+    update_run_json(run_dir, status=status, step=step, train_seconds=train_seconds,
+                    num_gaussians=summary["num_gaussians"], stopped_by_budget=stopped_by_budget, finished=_now())
+    return summary

@@ -1,0 +1,91 @@
+"""The engine's command line on the demo capture: train -> eval -> render -> export (+ demo)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from engine.__main__ import main
+
+TINY = ["--set", "iterations=12", "--set", "init_max_points=1500", "--set", "static_fraction=0.5"]
+
+
+@pytest.fixture(scope="module")
+def run_dir(demo_capture, tmp_path_factory):
+    run = tmp_path_factory.mktemp("cli") / "run"
+    assert main(["train", str(demo_capture), "--out", str(run), "--quiet", "--seed", "1", *TINY]) == 0
+    return run
+
+
+def test_train_writes_a_run(run_dir, demo_capture, capsys):
+    info = json.loads((run_dir / "run.json").read_text())
+    assert info["status"] == "finished" and info["step"] == 12 and info["seed"] == 1
+    assert info["capture"] == str(demo_capture.resolve()) and info["preset"] == "fast"
+    assert (run_dir / "checkpoint.pt").exists()
+    # resuming a finished run is a no-op that still prints the summary
+    assert main(["train", str(demo_capture), "--out", str(run_dir), "--quiet", "--seed", "1", *TINY]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["resumed_from"] == 12 and summary["status"] == "finished"
+
+
+def test_eval_prints_metrics_json(run_dir, capsys):
+    assert main(["eval", str(run_dir)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for k in ("psnr", "ssim", "psnr_interframe", "ssim_interframe", "psnr_dynamic", "n_frames", "train_seconds",
+              "num_gaussians"):
+        assert k in out
+    assert out["n_frames"] == 61 and out["n_interframe"] > 40 and 5 < out["psnr"] < 60
+    rows = (run_dir / "eval_frames.csv").read_text().splitlines()
+    assert rows[0].split(",")[:4] == ["index", "time", "camera", "interframe"] and len(rows) == 62
+    assert json.loads((run_dir / "metrics.json").read_text())["psnr"] == out["psnr"]
+
+
+def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
+    from engine.images import read_exr_channels, read_image_rgba
+
+    data = json.loads((demo_capture / "transforms.json").read_text())
+    cams = {"cameras": data["cameras"], "frames": data["eval_frames"][:2]}
+    (tmp_path / "cams.json").write_text(json.dumps(cams))
+    assert main(["render", str(run_dir), "--cameras", str(tmp_path / "cams.json"), "--out", str(tmp_path / "exr")]) == 0
+    exrs = sorted((tmp_path / "exr").glob("*.exr"))
+    assert [p.stem for p in exrs] == ["000000", "000001"]
+    ch = read_exr_channels(exrs[0])
+    assert set("RGBAZ") <= set(ch) and ch["R"].shape == (120, 160)
+    assert np.all(np.isfinite(ch["Z"])) and ch["A"].max() <= 1.0
+    assert main(["render", str(run_dir), "--cameras", str(tmp_path / "cams.json"), "--out", str(tmp_path / "png"),
+                 "--format", "png", "--time", "0.1"]) == 0
+    png = read_image_rgba(sorted((tmp_path / "png").glob("*.png"))[0])
+    assert png.shape == (120, 160, 4)
+    # a missing camera file is an error message, not a traceback
+    assert main(["render", str(run_dir), "--cameras", str(tmp_path / "none.json"), "--out", str(tmp_path)]) == 1
+    assert "none.json" in capsys.readouterr().err
+
+
+def test_export_npz(run_dir, tmp_path):
+    from engine.model import load_run, read_export
+
+    out = tmp_path / "cache.npz"
+    assert main(["export", str(run_dir), "--times", "0", "0.2", "5", "--out", str(out)]) == 0
+    data = read_export(out)
+    assert data["times"].tolist() == pytest.approx([0, 0.05, 0.1, 0.15, 0.2])
+    scene = load_run(run_dir)
+    frame = read_export(out, 2)
+    np.testing.assert_allclose(frame["means"], scene.gaussians_at(0.1)["means"], atol=5e-3)
+
+
+def test_cli_errors_are_messages(tmp_path, capsys):
+    assert main(["eval", str(tmp_path / "no_run")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "no_capture"), "--out", str(tmp_path / "r"), "--quiet"]) == 1
+    assert "no_capture" in capsys.readouterr().err
+
+
+def test_demo_command(demo_capture, tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--views", "4", *TINY]) == 0
+    text = capsys.readouterr().out
+    metrics = json.loads(text[: text.index("\n}") + 2])
+    assert metrics["n_frames"] == 61
+    orbit = sorted((out / "orbit").glob("*.png"))
+    assert len(orbit) == 4 and "orbit" in text
