@@ -81,6 +81,10 @@ class Frame:
     def load_rgba(self) -> np.ndarray:
         """float32 [H, W, 4]: RGB sRGB-encoded in [0, 1] (EXR encoded and clipped), alpha."""
         img = images.read_image_rgba(self.path)
+        finite = np.isfinite(img)
+        if not finite.all():  # NaN/inf pixels would poison every gradient: reject, never clip
+            raise CaptureError(self.path, "image contains non-finite values (NaN or inf) in "
+                                          f"{int((~finite).any(axis=-1).sum())} pixel(s)")
         if self.intrinsics is not None:
             h, w = img.shape[:2]
             k = self.intrinsics

@@ -1,0 +1,732 @@
+"""Error against wall time (``python -m engine bench``), plus micro-benchmark ratios.
+
+Design (documented here because the numbers depend on it):
+
+* Each configuration -- a preset x a *variant* -- is one call of ``engine.train.train``
+  with a wall-clock budget (``seconds``) in a fresh run directory ``OUT/<preset>-<variant>``.
+  Variants: ``full`` (the method as configured, spike terms when the spike branch is
+  registered), ``rgb_only`` (the RGB-only baseline), and the skip features ``freeze``
+  (:class:`engine.freezing.FreezeHook`), ``early_stop`` (stop when a held-out proxy stops
+  improving) and ``cull`` (prune Gaussians outside every train frustum).
+* **Curve samples are periodic checkpoints evaluated afterwards**: the run's
+  ``checkpoint_every_s`` is set to ``eval_every_s``; every time the trainer writes a new
+  ``checkpoint.pt`` the progress callback hard-links it into ``snapshots/`` (no copy; the
+  trainer replaces the file atomically, so each link keeps one version). Nothing is
+  evaluated inside the training loop, so the wall time of a run is not inflated by the
+  measurement (the only in-loop cost is the trainer's own checkpoint writes). After
+  training every snapshot is rendered on the capture's eval frames (every
+  ``eval_stride``-th one) -> PSNR / SSIM at (wall seconds since ``train()`` was called,
+  step). The final model gets the full ``engine.evaluate.evaluate`` (all eval frames:
+  PSNR, SSIM, inter-frame and dynamic PSNR) and the static-region flicker
+  (:func:`engine.freezing.run_flicker`).
+* Peak memory is the process's peak resident set size during the run (Linux ``VmHWM``,
+  reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
+  process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
+* Early stopping needs the model inside the loop: its proxy is the PSNR on a few eval
+  frames (``proxy_frames``, reported separately: ``psnr_excl_proxy`` scores the other
+  frames), evaluated every 5% of the steps inside the progress callback (its cost *is*
+  counted in the wall time); training is cancelled after ``patience`` (3) proxy
+  evaluations without a gain of ``min_delta`` (0.05 dB), once the deformation stage has
+  run for ``min_deform_fraction`` (25%) of its steps.
+* Micro-benchmarks in the same run: rasterizer fast path (``cpu``) vs the dense
+  ``reference`` and the plain-PyTorch tiled path (``engine.cli.bench_raster``'s scene and
+  timer), and spike decoding ``read_spikes`` vs the community per-frame loader and the
+  per-byte Python loop (``engine.cli.bench_decode``), as speed ratios.
+
+Outputs in OUT: ``bench.csv`` (one row per curve sample), ``bench.png`` (PSNR and SSIM
+against wall time), ``bench.md`` (final table + micro-benchmarks), ``bench.json``.
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+import os
+import platform
+import resource
+import shutil
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+VARIANTS = ("full", "rgb_only", "freeze", "early_stop", "cull")
+CSV_FIELDS = ("preset", "variant", "wall_s", "step", "total_steps", "psnr", "ssim", "num_gaussians")
+
+
+# ----------------------------------------------------------------------------- memory
+
+def _status_kb(key: str) -> float | None:
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def reset_peak_rss() -> bool:
+    """Reset the process's peak RSS (Linux >= 4.0). False when not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w", encoding="ascii") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> tuple[float, str]:
+    """(peak RSS in MiB, source): VmHWM since the last reset, else ru_maxrss (lifetime)."""
+    hwm = _status_kb("VmHWM")
+    if hwm is not None:
+        return hwm / 1024.0, "VmHWM"
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return (r / 1024.0 / 1024.0 if platform.system() == "Darwin" else r / 1024.0), "ru_maxrss (process lifetime)"
+
+
+def current_rss_mb() -> float:
+    v = _status_kb("VmRSS")
+    return float("nan") if v is None else v / 1024.0
+
+
+# ----------------------------------------------------------------------------- eval helpers
+
+def select_eval_frames(capture, stride: int = 1, exclude=()) -> list:
+    frames = sorted(capture.eval_frames, key=lambda f: (f.camera, f.time))
+    ex = {id(f) for f in exclude}
+    frames = [f for f in frames if id(f) not in ex]
+    return frames[:: max(1, int(stride))]
+
+
+class FrameCache:
+    """Ground-truth images of eval frames, loaded once."""
+
+    def __init__(self):
+        self._gt = {}
+
+    def gt(self, frame) -> np.ndarray:
+        key = str(frame.path)
+        if key not in self._gt:
+            self._gt[key] = frame.load_rgb()
+        return self._gt[key]
+
+
+def score_model(model, capture, frames, cache: FrameCache) -> dict:
+    """PSNR / SSIM of a ``Model4D`` on ``frames`` (each at its own time)."""
+    from .metrics import psnr, ssim
+    from .model import view_tensors
+
+    ps, ss = [], []
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        for f in frames:
+            vt = view_tensors(capture.view(f), model.gaussians.means.device)
+            rgb, _, _, _ = model.render(vt)
+            pred = rgb[0].clamp(0, 1).detach().cpu().numpy()
+            gt = cache.gt(f)
+            ps.append(psnr(pred, gt))
+            ss.append(ssim(pred, gt))
+    model.train(was_training)
+    return {"psnr": float(np.mean(ps)) if ps else float("nan"), "ssim": float(np.mean(ss)) if ss else float("nan")}
+
+
+def score_checkpoint(path: Path, capture, frames, cache: FrameCache) -> dict:
+    """Load one checkpoint file and score it; returns psnr, ssim, step, num_gaussians."""
+    from .checkpoint import CHECKPOINT
+    from .model import load_run
+
+    with tempfile.TemporaryDirectory(prefix="bt4d_bench_") as tmp:
+        dst = Path(tmp) / CHECKPOINT
+        try:
+            os.link(path, dst)
+        except OSError:
+            shutil.copy2(path, dst)
+        scene = load_run(tmp)
+    out = score_model(scene.model, capture, frames, cache)
+    out.update(step=scene.info.get("step"), total_steps=scene.info.get("total_steps"),
+               num_gaussians=scene.num_gaussians)
+    return out
+
+
+# ----------------------------------------------------------------------------- trainer access
+
+class TrainerGrab:
+    """A loss factory that only records the trainer (``engine.train.register_loss_factory``)
+    so that the progress callback can reach the model between steps. Non-rgb_only runs only."""
+
+    def __init__(self):
+        self.trainer = None
+
+    def __call__(self, trainer):
+        self.trainer = trainer
+        return []
+
+
+@contextlib.contextmanager
+def registered(factory):
+    from . import train as train_mod
+
+    train_mod.register_loss_factory(factory)
+    try:
+        yield factory
+    finally:
+        with contextlib.suppress(ValueError):
+            train_mod._LOSS_FACTORIES.remove(factory)
+
+
+# ----------------------------------------------------------------------------- skip features
+
+@dataclass
+class EarlyStopper:
+    """Cancel training when the proxy PSNR stops improving (see module doc)."""
+
+    capture: object
+    frames: list
+    every_fraction: float = 0.05
+    patience: int = 3
+    min_delta: float = 0.05
+    min_deform_fraction: float = 0.25
+    cache: FrameCache = field(default_factory=FrameCache)
+    history: list = field(default_factory=list)
+    stopped_at: dict | None = None
+    _next: int = 0
+    _best: float = -math.inf
+    _bad: int = 0
+
+    def __call__(self, p: dict, trainer, cancel: threading.Event) -> None:
+        if trainer is None or trainer.model is None or p["step"] < self._next:
+            return
+        self._next = p["step"] + max(1, int(self.every_fraction * p["total_steps"]))
+        s0 = trainer.static_steps
+        deform_done = (p["step"] - s0) / max(1, p["total_steps"] - s0)
+        t0 = time.perf_counter()
+        score = score_model(trainer.model, self.capture, self.frames, self.cache)["psnr"]
+        self.history.append({"step": p["step"], "elapsed_s": p["elapsed_s"], "proxy_psnr": score,
+                             "eval_s": time.perf_counter() - t0})
+        if p["stage"] != "deform" or deform_done < self.min_deform_fraction:
+            self._best = max(self._best, score)
+            return
+        if score > self._best + self.min_delta:
+            self._best, self._bad = score, 0
+        else:
+            self._bad += 1
+            if self._bad >= self.patience:
+                self.stopped_at = {"step": p["step"], "total_steps": p["total_steps"], "proxy_psnr": score,
+                                   "best_proxy_psnr": self._best}
+                cancel.set()
+
+
+def frustum_cull_mask(trainer, margin_px: float = 0.0, times=None) -> torch.Tensor:
+    """bool [N]: Gaussians invisible (radius 0: behind, beyond the image box, or below 1/255
+    opacity) in every train view, at the canonical positions and -- once the deformation
+    field exists -- at ``times`` (default: the train frame times) as well."""
+    from .raster.projection import project_gaussians
+
+    model = trainer.model
+    g = model.gaussians
+    views = {}
+    for it in trainer.items:
+        key = tuple(np.round(it["viewmat"][0].cpu().numpy().ravel(), 6)) + (it["width"], it["height"])
+        views.setdefault(key, it)
+    with torch.no_grad():
+        positions = [g.means.detach()]
+        if model.deformation is not None and model.use_deformation:
+            for t in (times if times is not None else trainer.frame_times):
+                d = model.deformation(g.means, g.quats, g.log_scales, g.opacity_logits, float(t))
+                positions.append(d["means"].detach())
+        visible = torch.zeros(g.num_gaussians, dtype=torch.bool, device=g.means.device)
+        scales = torch.exp(g.log_scales.detach())
+        opac = torch.sigmoid(g.opacity_logits.detach())
+        for it in views.values():
+            w, h = it["width"] + 2 * margin_px, it["height"] + 2 * margin_px
+            K = it["K"].clone()
+            K[:, 0, 2] += margin_px
+            K[:, 1, 2] += margin_px
+            for pos in positions:
+                proj = project_gaussians(pos, g.quats.detach(), scales, opac, it["viewmat"], K, int(w), int(h))
+                visible |= proj.radii[0] > 0
+    return ~visible
+
+
+@dataclass
+class Culler:
+    """Prune Gaussians outside every train frustum, between steps (progress callback): after
+    the first step, when the deformation stage starts, and right after each densification
+    (detected as a change of the Gaussian count; the densification statistics were just
+    reset there, so pruning then does not disturb them)."""
+
+    min_keep: int = 16
+    pruned: int = 0
+    events: list = field(default_factory=list)
+    _last_n: int = -1
+
+    def __call__(self, p: dict, trainer, cancel) -> None:
+        if trainer is None or trainer.model is None:
+            return
+        step = p["step"]
+        g = trainer.model.gaussians
+        changed = g.num_gaussians != self._last_n and self._last_n >= 0
+        if step == 1 or step == trainer.static_steps + 1 or changed:
+            mask = frustum_cull_mask(trainer)
+            n = int(mask.sum())
+            if n and g.num_gaussians - n >= self.min_keep:
+                g.prune(mask)
+                trainer.model.static_mask = None
+                self.pruned += n
+                self.events.append({"step": step, "pruned": n, "left": g.num_gaussians})
+        self._last_n = g.num_gaussians
+
+
+# ----------------------------------------------------------------------------- one run
+
+@dataclass
+class RunResult:
+    preset: str
+    variant: str
+    run_dir: str
+    summary: dict
+    curve: list
+    final: dict
+    peak_rss_mb: float
+    rss_source: str
+    wall_s: float
+    extra: dict = field(default_factory=dict)
+
+
+def _variant_kwargs(variant: str) -> dict:
+    if variant not in VARIANTS:
+        raise KeyError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+    return {"rgb_only": variant == "rgb_only"}
+
+
+def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float, eval_every_s: float,
+            eval_stride: int = 1, overrides: dict | None = None, seed: int = 0, proxy_frames: int = 4,
+            train_fn: Callable | None = None, evaluate_fn: Callable | None = None, flicker: bool = True,
+            bar_factory=None, device=None, freeze_kwargs: dict | None = None) -> RunResult:
+    """Train one (preset, variant) for ``seconds`` and sample its error curve (module doc)."""
+    if train_fn is None:
+        from .train import train as train_fn
+    if evaluate_fn is None:
+        from .evaluate import evaluate as evaluate_fn
+    from .checkpoint import CHECKPOINT
+
+    run_dir = Path(out_dir) / f"{preset}-{variant}"
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    snaps = run_dir / "snapshots"
+    snaps.mkdir(parents=True)
+    ov = dict(overrides or {})
+    ov["checkpoint_every_s"] = float(eval_every_s)
+    cache = FrameCache()
+    all_eval = sorted(capture.eval_frames, key=lambda f: (f.camera, f.time))
+    proxy = []
+    if variant == "early_stop" and all_eval:
+        idx = np.linspace(0, len(all_eval) - 1, min(proxy_frames, len(all_eval))).round().astype(int)
+        proxy = [all_eval[i] for i in sorted(set(idx.tolist()))]
+    curve_frames = select_eval_frames(capture, eval_stride)
+
+    grab = TrainerGrab()
+    hooks = []
+    cancel = threading.Event()
+    extra: dict = {}
+    stopper = EarlyStopper(capture, proxy) if variant == "early_stop" else None
+    culler = Culler() if variant == "cull" else None
+    if stopper:
+        hooks.append(stopper)
+    if culler:
+        hooks.append(culler)
+    step_elapsed: dict[int, float] = {}
+    seen = {"ino": None, "n": 0}
+    bar = None
+    ckpt = run_dir / CHECKPOINT
+
+    def progress(p):
+        nonlocal bar
+        step_elapsed[int(p["step"])] = float(p["elapsed_s"])
+        if bar is None and bar_factory is not None:
+            bar = bar_factory(p["total_steps"], f"{preset}-{variant}")
+        if bar is not None:
+            bar.total = p["total_steps"]
+            bar.update(p["step"] - bar.n)
+            bar.set_postfix_str(f"psnr {p['psnr']:.2f} n={p['num_gaussians']}")
+        try:
+            st = ckpt.stat()
+        except OSError:
+            st = None
+        if st is not None and st.st_ino != seen["ino"]:
+            seen["ino"] = st.st_ino
+            seen["n"] += 1
+            dst = snaps / f"{seen['n']:04d}.pt"
+            try:
+                os.link(ckpt, dst)
+            except OSError:
+                shutil.copy2(ckpt, dst)
+        for h in hooks:
+            h(p, grab.trainer, cancel)
+
+    ctx = contextlib.ExitStack()
+    if variant in ("early_stop", "cull", "freeze"):
+        ctx.enter_context(registered(grab))
+    hook = None
+    if variant == "freeze":
+        from .freezing import freezing_enabled
+
+        hook = ctx.enter_context(freezing_enabled(**(freeze_kwargs or {})))
+    reset_ok = reset_peak_rss()
+    t0 = time.perf_counter()
+    with ctx:
+        summary = train_fn(capture, run_dir, preset=preset, seconds=seconds, resume=False, seed=seed,
+                           progress=progress, cancel=cancel, overrides=ov, device=device,
+                           **_variant_kwargs(variant))
+    wall = time.perf_counter() - t0
+    peak, src = peak_rss_mb()
+    if not reset_ok:
+        src += ", not reset between runs"
+    if bar is not None:
+        bar.close()
+    # the final checkpoint is a snapshot too
+    if ckpt.exists() and ckpt.stat().st_ino != seen["ino"]:
+        seen["n"] += 1
+        os.link(ckpt, snaps / f"{seen['n']:04d}.pt")
+
+    curve = []
+    for path in sorted(snaps.glob("*.pt")):
+        try:
+            s = score_checkpoint(path, capture, curve_frames, cache)
+        except Exception as exc:  # a snapshot the trainer wrote half-way must not sink the bench
+            extra.setdefault("snapshot_errors", []).append(f"{path.name}: {exc}")
+            continue
+        step = s.get("step")
+        el = step_elapsed.get(int(step)) if step is not None else None
+        if el is None and step is not None and step_elapsed:
+            el = step_elapsed[min(step_elapsed, key=lambda k: abs(k - int(step)))]
+        curve.append({"preset": preset, "variant": variant, "wall_s": el, "step": step,
+                      "total_steps": s.get("total_steps"), "psnr": s["psnr"], "ssim": s["ssim"],
+                      "num_gaussians": s["num_gaussians"]})
+    curve.sort(key=lambda r: (r["step"] or 0))
+    shutil.rmtree(snaps, ignore_errors=True)
+
+    final = dict(evaluate_fn(run_dir, capture))
+    if proxy:
+        rest = [f for f in all_eval if all(f is not q for q in proxy)]
+        from .model import load_run
+
+        final["psnr_excl_proxy"] = score_model(load_run(run_dir).model, capture, rest, cache)["psnr"]
+    if flicker:
+        try:
+            from .freezing import run_flicker
+
+            final["flicker"] = run_flicker(run_dir, capture)
+        except Exception as exc:
+            final["flicker"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if stopper is not None:
+        extra["early_stop"] = {"stopped_at": stopper.stopped_at, "history": stopper.history}
+    if culler is not None:
+        extra["cull"] = {"pruned": culler.pruned, "events": culler.events}
+    if hook is not None:
+        extra["freeze"] = hook.summary()
+        extra["freeze_log"] = hook.log[-50:]
+    return RunResult(preset, variant, str(run_dir), dict(summary), curve, final, round(peak, 1), src, wall, extra)
+
+
+# ----------------------------------------------------------------------------- micro-benchmarks
+
+def micro_raster(quick: bool = False, repeats: int | None = None) -> dict:
+    """Rasterizer forward+backward: fast cpu vs dense reference (small scene, where the
+    reference fits in memory) and vs the plain-PyTorch tiled path (demo resolution)."""
+    from .cli.bench_raster import _time_cell, make_scene
+
+    rep = repeats or (2 if quick else 5)
+    out = {}
+    w, h, n = (64, 48, 200) if quick else (96, 72, 400)
+    scene = make_scene(n, w, h)
+    cpu = _time_cell(scene, w, h, "cpu", rep, None)
+    ref = _time_cell(scene, w, h, "reference", max(1, rep - 1), None)
+    out["small"] = {"size": f"{w}x{h}", "gaussians": n, "cpu_ms": cpu[1], "reference_ms": ref[1],
+                    "speedup_vs_reference": ref[1] / cpu[1]}
+    w, h, n = (160, 120, 2000) if quick else (160, 120, 10000)
+    scene = make_scene(n, w, h)
+    cpu = _time_cell(scene, w, h, "cpu", rep, None)
+    tor = _time_cell(scene, w, h, "torch", max(1, rep - 1), None)
+    out["demo"] = {"size": f"{w}x{h}", "gaussians": n, "cpu_ms": cpu[1], "torch_ms": tor[1],
+                   "speedup_vs_torch": tor[1] / cpu[1]}
+    return out
+
+
+def micro_decode(quick: bool = False) -> dict:
+    """Spike decoding: read_spikes vs the community per-frame loader and the per-byte loop."""
+    from .cli.bench_decode import _best, community_load_vidar, python_loop_load
+    from .spikes import read_spikes, write_spikes
+
+    h, w, n = 250, 400, (200 if quick else 1000)
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory(prefix="bt4d_bench_") as tmp:
+        path = Path(tmp) / "s.dat"
+        write_spikes(path, (rng.random((n, h, w)) < 0.2).astype(np.uint8))
+        t_ours, ours = _best(lambda: read_spikes(path, h, w), 3)
+        t_comm, comm = _best(lambda: community_load_vidar(path, h, w), 2)
+        k = 2
+        t_py, py = _best(lambda: python_loop_load(path, h, w, k), 1)
+        ok = bool(np.array_equal(comm, ours) and np.array_equal(py, ours[:k]))
+    mb = n * h * w / 8 / 1e6
+    return {"frames": n, "size": f"{w}x{h}", "read_spikes_s": t_ours, "community_s": t_comm,
+            "python_loop_s_scaled": t_py * n / k, "mb_per_s": mb / t_ours,
+            "speedup_vs_community": t_comm / t_ours, "speedup_vs_python_loop": t_py * n / k / t_ours,
+            "identical": ok}
+
+
+def micro_freeze_step(run_dir, capture, repeats: int = 8) -> dict:
+    """Forward + backward of one train view (deformation field + rasterizer, what a
+    deformation-stage step costs) of a trained run with its frozen mask
+    (``Model4D.static_mask``) and without, interleaved A/B so that load drift cancels."""
+    from .model import load_run, view_tensors
+
+    scene = load_run(run_dir)
+    model = scene.model
+    mask = model.static_mask
+    if mask is None or model.deformation is None:
+        return {"error": "run has no frozen mask or no deformation field"}
+    frames = sorted(capture.frames, key=lambda f: f.time)
+    vt = view_tensors(capture.view(frames[len(frames) // 2]), "cpu")
+    params = [p for p in model.parameters() if p.is_floating_point()]
+    for p in params:
+        p.requires_grad_(True)
+
+    def once(m):
+        model.static_mask = m
+        t0 = time.perf_counter()
+        rgb, alpha, meta, _ = model.render(vt)
+        rgb.mean().backward()
+        dt = time.perf_counter() - t0
+        for p in params:
+            p.grad = None
+        return dt
+
+    once(mask)
+    once(None)
+    on, off = [], []
+    for _ in range(max(1, repeats)):
+        on.append(once(mask))
+        off.append(once(None))
+    model.static_mask = mask
+    med_on, med_off = float(np.median(on)), float(np.median(off))
+    return {"frozen_fraction": float(mask.float().mean()), "gaussians": int(mask.shape[0]),
+            "step_ms_frozen": med_on * 1e3, "step_ms_unfrozen": med_off * 1e3, "speedup": med_off / med_on}
+
+
+# ----------------------------------------------------------------------------- reporting
+
+def write_csv(rows: list[dict], path: Path) -> Path:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if r.get(k) is None else (round(r[k], 4) if isinstance(r.get(k), float) else r[k]))
+                    for k in CSV_FIELDS})
+    Path(path).write_text(buf.getvalue(), encoding="utf-8")
+    return Path(path)
+
+
+def plot(results: list[RunResult], path: Path, title: str = "") -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for r in results:
+        pts = [c for c in r.curve if c["wall_s"] is not None and math.isfinite(c["psnr"])]
+        if not pts:
+            continue
+        xs = [c["wall_s"] for c in pts]
+        style = "--" if r.variant == "rgb_only" else "-"
+        label = f"{r.preset} / {r.variant}"
+        axes[0].plot(xs, [c["psnr"] for c in pts], style, marker="o", ms=3, label=label)
+        axes[1].plot(xs, [c["ssim"] for c in pts], style, marker="o", ms=3, label=label)
+    for ax, name in zip(axes, ("eval PSNR (dB)", "eval SSIM")):
+        ax.set_xlabel("wall time since train() (s)")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def _f(x, nd=2):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
+
+
+def time_to_within(curve: list, final_psnr: float, db: float = 0.5):
+    for c in curve:
+        if c["wall_s"] is not None and c["psnr"] >= final_psnr - db:
+            return c["wall_s"]
+    return None
+
+
+def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
+    lines = [f"# Error against wall time: {meta.get('capture')}", "",
+             f"{meta.get('host')}, torch {torch.__version__}, {meta.get('threads')} threads; "
+             + (f"budget {meta.get('seconds')} s per run" if meta.get("seconds") is not None
+                else f"{(meta.get('overrides') or {}).get('iterations', 'preset')} steps per run")
+             + f"; curve: eval frames every {meta.get('eval_stride')}, "
+             f"checkpoint every {meta.get('eval_every_s')} s. Shared CPU: timings are noisy.", "",
+             "| preset | variant | steps | train s | PSNR | SSIM | PSNR inter | PSNR dyn | Gaussians | "
+             "t to final-0.5 dB (s) | peak RSS MB | flicker x255 | notes |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        fin = r.final
+        fl = fin.get("flicker") or {}
+        notes = []
+        if r.summary.get("status") != "finished":
+            notes.append(r.summary.get("status"))
+        if "early_stop" in r.extra and r.extra["early_stop"]["stopped_at"]:
+            s = r.extra["early_stop"]["stopped_at"]
+            notes.append(f"stopped at {s['step']}/{s['total_steps']}")
+        if "psnr_excl_proxy" in fin:
+            notes.append(f"PSNR excl. proxy frames {fin['psnr_excl_proxy']:.2f}")
+        if "cull" in r.extra:
+            notes.append(f"culled {r.extra['cull']['pruned']}")
+        if "freeze" in r.extra:
+            fz = r.extra["freeze"]
+            notes.append(f"frozen {fz['fraction_frozen'] * 100:.0f}% at end, woken {fz['woken']}")
+        lines.append(
+            f"| {r.preset} | {r.variant} | {r.summary.get('step')}/{r.summary.get('total_steps')} | "
+            f"{_f(r.summary.get('train_seconds'), 1)} | {_f(fin.get('psnr'))} | {_f(fin.get('ssim'), 4)} | "
+            f"{_f(fin.get('psnr_interframe'))} | {_f(fin.get('psnr_dynamic'))} | {fin.get('num_gaussians', '-')} | "
+            f"{_f(time_to_within(r.curve, fin.get('psnr') or float('nan')), 1)} | {_f(r.peak_rss_mb, 0)} | "
+            f"{_f(fl.get('flicker_255'), 3)} | {'; '.join(notes)} |")
+    if micro:
+        lines += ["", "## Micro-benchmarks (same run)", ""]
+        ra = micro.get("raster")
+        if isinstance(ra, dict) and "small" in ra:
+            s, d = ra["small"], ra["demo"]
+            lines.append(f"- rasterizer fwd+bwd, {s['size']}, {s['gaussians']} Gaussians: cpu {s['cpu_ms']:.1f} ms vs "
+                         f"dense reference {s['reference_ms']:.1f} ms -> **{s['speedup_vs_reference']:.1f}x**")
+            lines.append(f"- rasterizer fwd+bwd, {d['size']}, {d['gaussians']} Gaussians: cpu {d['cpu_ms']:.1f} ms vs "
+                         f"plain-PyTorch tiled {d['torch_ms']:.1f} ms -> **{d['speedup_vs_torch']:.1f}x**")
+        elif ra:
+            lines.append(f"- rasterizer: {ra}")
+        fz = micro.get("freeze_step")
+        if isinstance(fz, dict) and "speedup" in fz:
+            lines.append(f"- deformation + raster fwd+bwd of one train view with {fz['frozen_fraction'] * 100:.0f}% of "
+                         f"{fz['gaussians']} Gaussians frozen: {fz['step_ms_frozen']:.0f} ms vs {fz['step_ms_unfrozen']:.0f} ms "
+                         f"unfrozen -> **{fz['speedup']:.2f}x** (interleaved A/B medians)")
+        de = micro.get("decode")
+        if isinstance(de, dict) and "speedup_vs_community" in de:
+            lines.append(f"- spike decode, {de['frames']} frames {de['size']}: read_spikes {de['read_spikes_s'] * 1e3:.1f} ms "
+                         f"({de['mb_per_s']:.0f} MB/s) -> **{de['speedup_vs_community']:.1f}x** the community per-frame "
+                         f"loader, **{de['speedup_vs_python_loop']:.0f}x** the per-byte Python loop "
+                         f"(identical output: {de['identical']})")
+        elif de:
+            lines.append(f"- spike decode: {de}")
+    lines += ["", f"Peak RSS source: {results[0].rss_source if results else '-'}."]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- suite
+
+def warmup() -> float:
+    """Compile / load the rasterizer's JIT kernels (forward + backward) before any timed run,
+    so that the first configuration does not pay for it. Returns the seconds it took."""
+    from .raster import rasterization
+
+    t0 = time.perf_counter()
+    g = torch.Generator().manual_seed(0)
+    n = 16
+    means = (torch.rand(n, 3, generator=g) - 0.5).requires_grad_(True)
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.full((n, 3), 0.1)
+    opac = torch.full((n,), 0.5)
+    colors = torch.rand(n, 3, generator=g)
+    vm = torch.eye(4)[None].clone()
+    vm[0, 2, 3] = 3.0
+    K = torch.tensor([[[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]]])
+    rgb, alpha, meta = rasterization(means, quats, scales, opac, colors, vm, K, 16, 16,
+                                     backgrounds=torch.zeros(1, 3))
+    (rgb.sum() + alpha.sum() + meta["depths"].sum()).backward()
+    return time.perf_counter() - t0
+
+
+def run_bench(capture, out_dir, *, presets=("fast",), variants=("full", "rgb_only"), seconds: float = 60.0,
+              eval_every_s: float = 10.0, eval_stride: int = 1, overrides: dict | None = None, seed: int = 0,
+              micro: bool = True, quick: bool = False, progress: bool = True, train_fn=None, evaluate_fn=None,
+              flicker: bool = True, device=None, log=print) -> dict:
+    """Run every (preset, variant), the micro-benchmarks, and write CSV / PNG / markdown / JSON."""
+    from .capture import load_capture
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cap = load_capture(capture) if not hasattr(capture, "eval_frames") else capture
+    bar_factory = None
+    if progress:
+        from tqdm import tqdm
+
+        def bar_factory(total, desc):
+            return tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True, leave=True)
+    warm_s = warmup()
+    results: list[RunResult] = []
+    for preset in presets:
+        for variant in variants:
+            r = run_one(cap, out, preset, variant, seconds=seconds, eval_every_s=eval_every_s,
+                        eval_stride=eval_stride, overrides=overrides, seed=seed, train_fn=train_fn,
+                        evaluate_fn=evaluate_fn, flicker=flicker, bar_factory=bar_factory, device=device)
+            results.append(r)
+            if log:
+                log(f"{preset}-{variant}: psnr {_f(r.final.get('psnr'))} ssim {_f(r.final.get('ssim'), 4)} "
+                    f"steps {r.summary.get('step')} in {_f(r.summary.get('train_seconds'), 1)} s, "
+                    f"peak RSS {r.peak_rss_mb:.0f} MB")
+    micro_res = {}
+    frozen_runs = [r for r in results if r.variant == "freeze"]
+    if micro and frozen_runs:
+        try:
+            micro_res["freeze_step"] = micro_freeze_step(frozen_runs[0].run_dir, cap)
+        except Exception as exc:
+            micro_res["freeze_step"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if micro:
+        for name, fn in (("raster", micro_raster), ("decode", micro_decode)):
+            try:
+                micro_res[name] = fn(quick=quick)
+            except Exception as exc:
+                micro_res[name] = {"error": f"{type(exc).__name__}: {exc}"}
+    meta = {"capture": str(getattr(cap, "root", capture)), "host": platform.node(), "threads": torch.get_num_threads(),
+            "seconds": seconds, "eval_every_s": eval_every_s, "eval_stride": eval_stride,
+            "presets": list(presets), "variants": list(variants), "overrides": overrides or {},
+            "warmup_s": round(warm_s, 2)}
+    rows = [c for r in results for c in r.curve]
+    write_csv(rows, out / "bench.csv")
+    plot(results, out / "bench.png", title=f"{Path(meta['capture']).name}: eval error against wall time")
+    md = markdown(results, micro_res, meta)
+    (out / "bench.md").write_text(md, encoding="utf-8")
+    data = {"meta": meta, "micro": micro_res,
+            "runs": [{"preset": r.preset, "variant": r.variant, "run_dir": r.run_dir, "summary": r.summary,
+                      "final": r.final, "curve": r.curve, "peak_rss_mb": r.peak_rss_mb, "rss_source": r.rss_source,
+                      "wall_s": r.wall_s, "extra": r.extra} for r in results]}
+    (out / "bench.json").write_text(json.dumps(data, indent=2, default=_json_default), encoding="utf-8")
+    return {"results": results, "micro": micro_res, "markdown": md, "out": str(out)}
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, torch.Tensor):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+

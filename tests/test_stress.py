@@ -1,0 +1,97 @@
+"""Fast versions of the numerical-stability stress suite (``python -m engine stress``).
+
+Every optimisation case runs a few dozen Adam steps through the fast CPU rasterizer and must
+see no non-finite loss, gradient or parameter at any step."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from engine import stress
+
+STEPS = 40
+OPT_CASES = ["scale_tiny", "scale_huge", "scale_range", "opacity_zero", "opacity_threshold",
+             "opacity_saturated", "near_plane", "degenerate_cov", "extent_tiny", "extent_huge",
+             "empty_view", "long_time"]
+
+
+@pytest.mark.parametrize("name", OPT_CASES)
+def test_optimisation_case_stays_finite(name):
+    res = stress.run_case(name, STEPS)
+    assert res.failures == [], res.failures
+    assert res.steps == STEPS
+    assert res.nonfinite_params == 0 and res.nonfinite_grads == 0 and res.nonfinite_other == 0, res.to_dict()
+    assert math.isfinite(res.final_loss)
+    assert math.isfinite(res.max_grad)
+
+
+def test_empty_view_has_zero_gradients_and_opacity_zero_too():
+    for name in ("empty_view", "opacity_zero"):
+        res = stress.run_case(name, 5)
+        assert res.ok and res.max_grad == 0.0, res.to_dict()
+
+
+def test_spike_streams_all_zero_and_all_one():
+    res = stress.run_case("spikes_extreme", 12)
+    assert res.ok, res.to_dict()
+    assert res.steps > 0
+
+
+def test_fp32_fast_path_matches_fp64_reference():
+    r = stress.compare_fp32_fp64(seed=3)
+    assert r["image"] < stress.FP_TOL["image"] and r["alpha"] < stress.FP_TOL["alpha"]
+    assert r["depth"] < stress.FP_TOL["depth"]
+    for k in stress.PARAM_ORDER:
+        assert r[f"grad_{k}"] < stress.FP_TOL["grad"], (k, r)
+        assert r[f"nonfinite_{k}"] == 0
+
+
+def test_long_time_normalisation_is_finite():
+    from engine.deformation import DeformationField
+
+    f = DeformationField([-1] * 3, [1] * 3, (0.0, 1e4), features=4, resolution=4, multires=(1,),
+                         time_resolution=4, width=8)
+    for t in (0.0, 1e4, 1e6, -1e4, 1.7e9):
+        assert math.isfinite(f.normalize_time(t))
+        out = f(torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0]] * 2), torch.zeros(2, 3), torch.zeros(2), t)
+        assert all(torch.isfinite(v).all() for v in out.values() if v is not None)
+
+
+@pytest.mark.parametrize("name", ["pose_nan", "pose_inf", "intrinsics_nan", "time_nan"])
+def test_nonfinite_capture_records_rejected_naming_the_file(tmp_path, name):
+    recs = {r["name"]: r for r in stress.bad_input_checks(tmp_path)}
+    r = recs[name]
+    assert r["rejected"], r
+    assert r["names_file"] and "transforms.json" in r["message"], r
+    assert "non-finite" in r["message"] or "finite" in r["message"], r
+
+
+def test_nan_pixels_rejected_naming_the_image(tmp_path):
+    from engine.capture import load_capture
+    from engine.errors import CaptureError
+
+    img = np.full((8, 8, 3), 0.5, np.float32)
+    img[2, 3, 1] = np.nan
+    stress._write_tiny_capture(tmp_path / "cap", image=img, exr=True)
+    cap = load_capture(tmp_path / "cap")
+    with pytest.raises(CaptureError, match="f0.exr"):
+        cap.frames[0].load_rgb()
+
+
+def test_cli_quick_subset_prints_count_last(capsys):
+    from engine.__main__ import main
+
+    rc = main(["stress", "--steps", "3", "--cases", "empty_view,fp32_vs_fp64", "--no-progress"])
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out[-1] == "non-finite values: 0"
+    assert rc == 0
+    assert any(line.startswith("empty_view") for line in out)
+
+
+def test_real_trainer_stays_finite_on_a_tiny_capture():
+    res = stress.run_case("trainer", 20)
+    assert res.failures == [] and res.nonfinite == 0, res.to_dict()
+    assert res.steps == 40   # 20 steps at scale 1 and 20 at scale 1e-3
