@@ -20,6 +20,9 @@ COMMANDS = {
     "spikes": "spikes",
     "bench-decode": "bench_decode",
     "bench-raster": "bench_raster",
+    "bench": "bench",
+    "stress": "stress",
+    "ablate": "ablate",
 }
 
 

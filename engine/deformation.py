@@ -146,6 +146,7 @@ class DeformationField(nn.Module):
         self.opacity_head = _head(width, 1) if deform_opacity else None
         self.color_head = _head(width, 3) if deform_color else None
         self.fine_encoder: nn.Module | None = None  # Eq. 10 hook (spike branch)
+        self.fine_spec: dict | None = None  # spec of a checkpoint's spike fine encoder
         self.pending_fine_state: dict = {}  # fine_encoder weights found in a checkpoint (see engine.model)
 
     # ---- coordinates ------------------------------------------------------------------
@@ -172,6 +173,8 @@ class DeformationField(nn.Module):
         xyz = self.normalize_xyz(means)
         tn = torch.full((means.shape[0], 1), self.normalize_time(t), dtype=means.dtype, device=means.device)
         f = self.phi(self.grid(torch.cat([xyz, tn], dim=1)))
+        if self.fine_encoder is None and self.fine_spec is not None:
+            self.restore_fine_encoder()
         if fine is None and self.fine_encoder is not None:
             fine = self.fine_encoder(xyz, t)
         if fine is not None:
@@ -214,14 +217,34 @@ class DeformationField(nn.Module):
 
     # ---- (de)serialisation ----------------------------------------------------------------
     def config(self) -> dict:
-        return {"bounds_min": self.bounds_min.tolist(), "bounds_max": self.bounds_max.tolist(),
-                "time_range": list(self.time_range), **{k: (list(v) if isinstance(v, tuple) else v)
-                                                         for k, v in self.options.items()}}
+        cfg = {"bounds_min": self.bounds_min.tolist(), "bounds_max": self.bounds_max.tolist(),
+               "time_range": list(self.time_range), **{k: (list(v) if isinstance(v, tuple) else v)
+                                                        for k, v in self.options.items()}}
+        spec = getattr(self.fine_encoder, "spec", None) or self.fine_spec
+        if spec is not None:  # spike fine branch (engine.spike_guidance.SpikeFineEncoder)
+            cfg["fine"] = spec
+        return cfg
+
+    def restore_fine_encoder(self) -> None:
+        """Rebuild the spike fine encoder of a loaded checkpoint from its spec (config
+        "fine") and the weights waiting in ``pending_fine_state``."""
+        if self.fine_encoder is not None or self.fine_spec is None:
+            return
+        from .spike_guidance import SpikeFineEncoder
+
+        enc = SpikeFineEncoder(self.feature_dim, self.fine_spec).to(self.bounds_min.device)
+        if self.pending_fine_state:
+            enc.load_state_dict(self.pending_fine_state)
+            self.pending_fine_state = {}
+        self.fine_encoder = enc
 
     @classmethod
     def from_config(cls, cfg: dict) -> "DeformationField":
         c = dict(cfg)
-        return cls(c.pop("bounds_min"), c.pop("bounds_max"), c.pop("time_range"), **c)
+        fine = c.pop("fine", None)
+        field = cls(c.pop("bounds_min"), c.pop("bounds_max"), c.pop("time_range"), **c)
+        field.fine_spec = fine  # the encoder itself is rebuilt lazily (restore_fine_encoder)
+        return field
 
 
 def time_resolution_for(frame_times, per_frame: float) -> int:

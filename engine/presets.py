@@ -78,6 +78,26 @@ class TrainConfig:
     checkpoint_every_s: float = 30.0
     log_every: int = 1
 
+    # ---- spike guidance (BulletTime4D, engine.spike_guidance; ignored with rgb_only) ------
+    fine_deformation: bool = True  # Eq. 6-10 fine spike feature added to the HexPlane feature
+    fine_per_gaussian: bool = False  # per-Gaussian spike features (else one per instant)
+    fine_frozen_encoder: bool = False  # conv texture encoder frozen at its random init
+    fine_k_sub: int = 8  # sub-windows (attention tokens) per RGB interval
+    fine_d_model: int = 64  # attention width of the fine branch
+    fine_channels: int = 32  # conv channels of the spike texture encoder
+    lr_fine: float = 1e-3  # learning rate of the fine branch
+    spike_loss_weight: float = 1.0  # Eq. 17 (rate L1 in linear-luminance units)
+    spike_window: int = 32  # m: spike frames per rendered window (paper: 32)
+    spike_loss_mode: str = "counts"  # counts (expected counts) | if (m-step IF, surrogate gradient)
+    block_loss_weight: float = 1.0  # Eq. 20 block colour loss at between-frame instants
+    block_interp: str = "flow"  # flow | linear (RIFE stand-ins)
+    between_every: int = 1  # a between-frame render every k deformation steps (0: never)
+    between_colocated_p: float = 0.75  # share of between renders at the spike camera's view
+    between_scale: float = 0.5  # between-frame renders at this fraction of the RGB resolution
+    spike_time_resolution_per_frame: float = 6.0  # HexPlane time cells per RGB frame with guidance
+    baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img
+    baseline_per_interval: int = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}

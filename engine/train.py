@@ -211,6 +211,7 @@ class Trainer:
             vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(self.device)[None]
             vt["index"] = i
             vt["camera"] = f.camera
+            vt["synthetic"] = bool(getattr(f, "extra", {}).get("synthetic"))  # baseline frames
             self.items.append(vt)
         if cfg.lambda_depth > 0:
             priors = stereo_depth_priors(capture, frames)
@@ -303,12 +304,25 @@ class Trainer:
         g = self.model.gaussians
         means = g.means.detach().cpu().numpy()
         lo, hi = robust_bounds(means)
-        field = make_field(self.cfg, lo, hi, self.time_range, self.frame_times, seed=self.seed).to(self.device)
+        cfg = self.cfg
+        if self.between_supervised():  # spike / block colour losses constrain the field between frames
+            cfg = cfg.replace(time_resolution_per_frame=cfg.spike_time_resolution_per_frame)
+        field = make_field(cfg, lo, hi, self.time_range, self.frame_times, seed=self.seed).to(self.device)
         self.model.deformation = field
         self.model.use_deformation = True
         self._make_deform_opt()
         for hook in self.deformation_hooks:
             hook(self)
+
+    def between_supervised(self) -> bool:
+        """True when the spike guidance supervises instants between the RGB frames."""
+        if self.rgb_only:
+            return False
+        from .spike_guidance import spike_stream_info
+
+        if spike_stream_info(self.capture) is None:  # no spikes: plain RGB training, no flag needed
+            return False
+        return self.cfg.spike_loss_weight > 0 or self.cfg.block_loss_weight > 0
 
     def _make_deform_opt(self) -> None:
         d = self.model.deformation
@@ -498,6 +512,10 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     run_dir.mkdir(parents=True, exist_ok=True)
     cap = _load_capture(capture)
     cfg = get_preset(preset, overrides)
+    if cfg.baseline:  # two-stage baselines (paper Table 1): synthetic in-between training frames
+        from .baselines import with_baseline
+
+        cap = with_baseline(cap, cfg.baseline, per_interval=cfg.baseline_per_interval)
     torch.manual_seed(seed)
     np.random.seed(seed % (2 ** 32))
     cap_path = _capture_path(cap)
@@ -593,3 +611,13 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     update_run_json(run_dir, status=status, step=step, train_seconds=train_seconds,
                     num_gaussians=summary["num_gaussians"], stopped_by_budget=stopped_by_budget, finished=_now())
     return summary
+
+
+def _register_spike_guidance() -> None:
+    """BulletTime4D spike guidance (spike + block colour losses, fine branch): engine.spike_guidance."""
+    from .spike_guidance import guidance_factory
+
+    register_loss_factory(guidance_factory)
+
+
+_register_spike_guidance()
