@@ -40,6 +40,7 @@ from . import images
 from .cameras import Intrinsics, View
 from .colour import linear_to_srgb
 from .errors import CaptureError
+from .fileio import atomic_path
 from .spikes import SpikeStream, count_frames, frame_bytes
 
 ROLES = ("train", "eval")
@@ -570,9 +571,6 @@ def load_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
 
 def write_points(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
     """Write a PLY point cloud (rgb float in [0, 1] or None), atomically."""
-    import os
-    import tempfile
-
     import trimesh
 
     path = Path(path)
@@ -582,13 +580,6 @@ def write_points(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = Non
         colors = np.clip(np.rint(np.asarray(rgb, dtype=np.float64).reshape(-1, 3) * 255), 0, 255).astype(np.uint8)
         colors = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], axis=1)
     pc = trimesh.PointCloud(xyz, colors=colors)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp.ply")
-    os.close(fd)
-    try:
+    with atomic_path(path, ".ply") as tmp:
         pc.export(tmp, file_type="ply")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

@@ -9,34 +9,17 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import torch
 
 from .errors import RunError
+from .fileio import atomic_write
 
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS = "checkpoint.prev.pt"
 RUN_JSON = "run.json"
 FORMAT_VERSION = 1
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 def save_checkpoint(run_dir: str | Path, state: dict) -> Path:
@@ -55,7 +38,7 @@ def save_checkpoint(run_dir: str | Path, state: dict) -> Path:
             os.replace(tmp_prev, prev)
         except OSError:
             pass
-    _atomic_write(path, lambda fh: torch.save(state, fh))
+    atomic_write(path, lambda fh: torch.save(state, fh))
     return path
 
 
@@ -86,7 +69,7 @@ def load_checkpoint(run_dir: str | Path, map_location="cpu") -> dict:
 def write_json(path: str | Path, data: dict) -> None:
     path = Path(path)
     text = json.dumps(data, indent=2, sort_keys=False, default=_json_default)
-    _atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+    atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
 
 
 def _json_default(o):

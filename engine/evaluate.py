@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .checkpoint import _atomic_write, read_run_json, write_json
+from .checkpoint import read_run_json, write_json
+from .fileio import atomic_write
 from .errors import RunError
 from .metrics import is_interframe, motion_masks, psnr, ssim
 
@@ -101,6 +102,6 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         for i, r in enumerate(rows):
             w.writerow([i, f"{r['time']:.6f}", r["camera"], int(r["interframe"]), f"{r['psnr']:.4f}",
                         f"{r['ssim']:.5f}", "" if math.isnan(r["psnr_dynamic"]) else f"{r['psnr_dynamic']:.4f}"])
-        _atomic_write(run_dir / "eval_frames.csv", lambda fh: fh.write(buf.getvalue().encode()))
+        atomic_write(run_dir / "eval_frames.csv", lambda fh: fh.write(buf.getvalue().encode()))
         write_json(run_dir / "metrics.json", result)
     return result

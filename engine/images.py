@@ -16,9 +16,7 @@ the file.
 """
 from __future__ import annotations
 
-import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 
@@ -26,6 +24,7 @@ import numpy as np
 
 from .colour import linear_to_srgb
 from .errors import CaptureError
+from .fileio import atomic_path, atomic_write
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -67,24 +66,6 @@ def _to_rgba(img: np.ndarray) -> np.ndarray:
         out[..., :3] = img[..., :3]
         out[..., 3] = img[..., 3] if c == 4 else 1.0
     return out
-
-
-def _atomic_target(path: Path, suffix: str) -> str:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
-    os.close(fd)
-    return tmp
-
-
-def _replace(tmp: str, path: Path) -> None:
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 # ----------------------------------------------------------------------------- PNG
@@ -386,15 +367,7 @@ def write_png(path: str | Path, img: np.ndarray, bits: int = 8) -> Path:
     """Write a float image in [0, 1] (sRGB-encoded; clipped) as an 8- or 16-bit PNG, atomically."""
     path = Path(path)
     data = encode_png(img, bits)
-    tmp = _atomic_target(path, ".png")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-    _replace(tmp, path)
-    return path
+    return atomic_write(path, lambda fh: fh.write(data), fsync=False)
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray] | np.ndarray, *, half: bool = False) -> Path:
@@ -419,12 +392,6 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray] | np.ndarray, *,
         dt = np.float16 if (half and name in ("R", "G", "B", "A")) else np.float32
         out[name] = np.ascontiguousarray(np.asarray(v, dtype=dt))
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    tmp = _atomic_target(path, ".exr")
-    try:
-        with OpenEXR.File(header, out) as f:
-            f.write(tmp)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-    _replace(tmp, path)
+    with atomic_path(path, ".exr") as tmp, OpenEXR.File(header, out) as f:
+        f.write(tmp)
     return path

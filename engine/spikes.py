@@ -16,13 +16,12 @@ reads only the requested frames from disk.
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import CaptureError
+from .fileio import atomic_write
 
 # frames decoded per unpackbits call (bounds temporary memory for long reads)
 _CHUNK_BYTES = 32 << 20
@@ -152,18 +151,7 @@ def write_spikes(path: str | Path, spikes: np.ndarray, *, flipud: bool = True, h
         with open(path, "ab") as fh:
             fh.write(packed.tobytes())
         return path
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(packed.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return path
+    return atomic_write(path, lambda fh: fh.write(packed.tobytes()), fsync=False)
 
 
 class SpikeStream:
