@@ -37,12 +37,20 @@ def view_tensors(view: View, device) -> dict:
             "campos": torch.as_tensor(view.center, dtype=torch.float32, device=device), "time": float(view.time)}
 
 
+def near_plane_for_extent(extent: float) -> float:
+    """gsplat's 0.01 near plane for scenes of metres, scaled down with tiny scenes so that a
+    capture of extent 1e-3 is not culled whole (found by the stress suite)."""
+    return float(min(0.01, 1e-3 * max(float(extent), 1e-9)))
+
+
 class Model4D(nn.Module):
     """Canonical Gaussians (+ optional deformation field)."""
 
     def __init__(self, gaussians: GaussianModel, deformation: DeformationField | None = None,
-                 background=(0.0, 0.0, 0.0), static_mask: torch.Tensor | None = None):
+                 background=(0.0, 0.0, 0.0), static_mask: torch.Tensor | None = None,
+                 near_plane: float = 0.01):
         super().__init__()
+        self.near_plane = float(near_plane)
         self.gaussians = gaussians
         self.deformation = deformation
         self.background = tuple(float(b) for b in background)
@@ -82,7 +90,7 @@ class Model4D(nn.Module):
         rgb, alpha, meta = rasterization(
             attrs["means"], attrs["quats"], attrs["scales"], attrs["opacities"], attrs["colors"],
             vt["viewmat"], vt["K"], vt["width"], vt["height"], backgrounds=bgs, render_depth=render_depth,
-            backend=backend)
+            near_plane=self.near_plane, backend=backend)
         return rgb, alpha, meta, attrs
 
     # ------------------------------------------------------------------ (de)serialisation
@@ -93,6 +101,7 @@ class Model4D(nn.Module):
                 "config": self.deformation.config(), "state_dict": self.deformation.state_dict()},
             "use_deformation": self.use_deformation,
             "background": list(self.background),
+            "near_plane": self.near_plane,
             "static_mask": None if self.static_mask is None else self.static_mask.cpu(),
         }
 
@@ -109,7 +118,8 @@ class Model4D(nn.Module):
                                          if k.startswith("fine_encoder.")}
             deform.load_state_dict(sd)
             deform.to(device)
-        m = cls(g, deform, background=state.get("background", (0, 0, 0)))
+        m = cls(g, deform, background=state.get("background", (0, 0, 0)),
+                near_plane=state.get("near_plane", 0.01))
         m.use_deformation = bool(state.get("use_deformation", deform is not None))
         sm = state.get("static_mask")
         m.static_mask = None if sm is None else sm.to(device)

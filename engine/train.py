@@ -37,7 +37,7 @@ from .deformation import make_field
 from .errors import RunError
 from .gaussians import GaussianModel
 from .init_points import initial_points, stereo_depth_priors
-from .model import Model4D, default_device, view_tensors
+from .model import Model4D, default_device, near_plane_for_extent, view_tensors
 from .presets import TrainConfig, get_preset
 
 # ---------------------------------------------------------------------------------- losses
@@ -296,7 +296,7 @@ class Trainer:
         self.extent = scene_extent(pts.xyz, centers)
         g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=self.device)
         g.setup_optimizer(cfg, self.extent)
-        self.model = Model4D(g, None, background=cfg.background)
+        self.model = Model4D(g, None, background=cfg.background, near_plane=near_plane_for_extent(self.extent))
         self.model.use_deformation = False
 
     def start_deformation(self) -> None:

@@ -95,3 +95,7 @@ def test_real_trainer_stays_finite_on_a_tiny_capture():
     res = stress.run_case("trainer", 20)
     assert res.failures == [] and res.nonfinite == 0, res.to_dict()
     assert res.steps == 40   # 20 steps at scale 1 and 20 at scale 1e-3
+    # a scene 1000x smaller must train as well as the same scene at scale 1: with a fixed
+    # near plane of 0.01 the tiny scene was culled whole (5.8 dB)
+    psnr = {float(n.split(":")[0].split()[1]): float(n.split("train PSNR ")[1].split(",")[0]) for n in res.notes}
+    assert psnr[1e-3] > psnr[1.0] - 3.0, res.notes
