@@ -148,8 +148,9 @@ def keyframe_poses(obj, timed_poses: Iterable[tuple[float, object]], fps: float,
     return count
 
 
-def _set_linear(action) -> None:
-    """Linear interpolation on every key of ``action`` (layered actions in Blender >= 4.4)."""
+def action_fcurves(action) -> list:
+    """Every F-curve of ``action``: through its layers' channelbags (Blender >= 4.4, where
+    ``Action.fcurves`` is gone in 5.0), or ``action.fcurves`` on older versions."""
     curves = []
     if hasattr(action, "layers") and len(action.layers):
         for layer in action.layers:
@@ -158,7 +159,12 @@ def _set_linear(action) -> None:
                     curves.extend(bag.fcurves)
     elif hasattr(action, "fcurves"):
         curves.extend(action.fcurves)
-    for fc in curves:
+    return curves
+
+
+def _set_linear(action) -> None:
+    """Linear interpolation on every key of ``action``."""
+    for fc in action_fcurves(action):
         for kp in fc.keyframe_points:
             kp.interpolation = "LINEAR"
 

@@ -209,15 +209,8 @@ class _Created:
 
 
 def _set_constant(action) -> None:
-    curves = []
-    if hasattr(action, "layers") and len(action.layers):
-        for layer in action.layers:
-            for strip in layer.strips:
-                for bag in getattr(strip, "channelbags", []):
-                    curves.extend(bag.fcurves)
-    elif hasattr(action, "fcurves"):
-        curves.extend(action.fcurves)
-    for fc in curves:
+    """Constant interpolation on the background-image frame-offset keys of ``action``."""
+    for fc in scene_build.action_fcurves(action):
         if "frame_offset" in fc.data_path:
             for kp in fc.keyframe_points:
                 kp.interpolation = "CONSTANT"
