@@ -26,12 +26,11 @@ import math
 
 import numpy as np
 
+from . import scene_build
 from .worker import engine_module
 
 _cams = engine_module("cameras")
 Intrinsics, View = _cams.Intrinsics, _cams.View
-
-DEFAULT_SENSOR = 36.0
 
 
 def render_size(scene) -> tuple[int, int]:
@@ -99,47 +98,13 @@ def camera_to_view(cam_obj, scene, time: float = 0.0, *, width: int | None = Non
                 float(time), name if name is not None else cam_obj.name)
 
 
-def params_from_intrinsics(intr: Intrinsics, sensor_width: float = DEFAULT_SENSOR) -> dict:
-    """Blender camera/render parameters reproducing ``intr`` exactly.
-
-    Returns dict(lens, sensor_width, sensor_height, sensor_fit, shift_x, shift_y,
-    resolution_x, resolution_y, pixel_aspect_x, pixel_aspect_y). Uses a horizontal fit on a
-    ``sensor_width`` mm sensor; ``fx != fy`` is expressed through the pixel aspect
-    (a scene-wide setting in Blender)."""
-    W, H = intr.width, intr.height
-    ycor = intr.fx / intr.fy  # fy = fx / ycor
-    if ycor >= 1.0:
-        ax, ay = 1.0, ycor
-    else:
-        ax, ay = 1.0 / ycor, 1.0
-    viewfac = W
-    lens = intr.fx * sensor_width / viewfac
-    return dict(
-        lens=float(lens), sensor_width=float(sensor_width),
-        sensor_height=float(sensor_width * H * ycor / W), sensor_fit="HORIZONTAL",
-        shift_x=float((0.5 * W - intr.cx) / viewfac),
-        shift_y=float((intr.cy - 0.5 * H) * ycor / viewfac),
-        resolution_x=int(W), resolution_y=int(H), pixel_aspect_x=float(ax), pixel_aspect_y=float(ay),
-    )
-
-
-def apply_intrinsics(cam_data, intr: Intrinsics, scene=None, sensor_width: float = DEFAULT_SENSOR) -> dict:
+def apply_intrinsics(cam_data, intr: Intrinsics, scene=None) -> dict:
     """Set a ``bpy.types.Camera`` (and, when given, the scene's resolution / pixel aspect) to
-    reproduce ``intr``. Returns the parameters used."""
-    p = params_from_intrinsics(intr, sensor_width)
-    cam_data.type = "PERSP"
-    cam_data.lens_unit = "MILLIMETERS"
-    cam_data.sensor_fit = p["sensor_fit"]
-    cam_data.sensor_width = p["sensor_width"]
-    cam_data.sensor_height = p["sensor_height"]
-    cam_data.lens = p["lens"]
-    cam_data.shift_x = p["shift_x"]
-    cam_data.shift_y = p["shift_y"]
+    reproduce ``intr``, with the import operator's camera model (``scene_build``). Returns the
+    parameters used."""
+    p = scene_build.apply_intrinsics(cam_data, intr)
     if scene is not None:
-        r = scene.render
-        r.resolution_x, r.resolution_y = p["resolution_x"], p["resolution_y"]
-        r.resolution_percentage = 100
-        r.pixel_aspect_x, r.pixel_aspect_y = p["pixel_aspect_x"], p["pixel_aspect_y"]
+        scene_build.configure_render(scene, intr)
     return p
 
 
