@@ -428,3 +428,12 @@ def capture_time_at(obj, frame: float) -> float:
 
 def find_result_objects(scene):
     return [o for o in scene.objects if o.get("bt4d_result") and MODIFIER_NAME in o.modifiers]
+
+
+def pick_result_object(context):
+    """The active reconstruction object, else the scene's first one, else None."""
+    results = find_result_objects(context.scene)
+    if not results:
+        return None
+    obj = context.active_object
+    return obj if obj in results else results[0]

@@ -172,18 +172,6 @@ class TrainerGrab:
         return []
 
 
-@contextlib.contextmanager
-def registered(factory):
-    from . import train as train_mod
-
-    train_mod.register_loss_factory(factory)
-    try:
-        yield factory
-    finally:
-        with contextlib.suppress(ValueError):
-            train_mod._LOSS_FACTORIES.remove(factory)
-
-
 # ----------------------------------------------------------------------------- skip features
 
 @dataclass
@@ -376,7 +364,9 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
 
     ctx = contextlib.ExitStack()
     if variant in ("early_stop", "cull", "freeze"):
-        ctx.enter_context(registered(grab))
+        from .train import loss_factory_registered
+
+        ctx.enter_context(loss_factory_registered(grab))
     hook = None
     if variant == "freeze":
         from .freezing import freezing_enabled

@@ -524,15 +524,10 @@ class FreezeHook:
 def freezing_enabled(**kwargs):
     """``with freezing_enabled(k_checks=3) as hook: train(...)`` -- runs :class:`FreezeHook`
     inside every (non rgb_only) training started in the block, then unregisters it."""
-    from . import train as train_mod
+    from .train import loss_factory_registered
 
-    hook = FreezeHook(**kwargs)
-    train_mod.register_loss_factory(hook)
-    try:
+    with loss_factory_registered(FreezeHook(**kwargs)) as hook:
         yield hook
-    finally:
-        with contextlib.suppress(ValueError):
-            train_mod._LOSS_FACTORIES.remove(hook)
 
 
 def frozen_deformation_cost(num_gaussians: int, num_frozen: int) -> float:

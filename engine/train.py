@@ -18,6 +18,7 @@ stop (reported as ``stopped_by_budget``).
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import datetime as _dt
 import math
@@ -72,6 +73,18 @@ def register_loss_factory(factory: Callable[["Trainer"], list[LossTerm]]) -> Non
     """Add a factory ``(trainer) -> [LossTerm]`` called when a (non rgb_only) run starts."""
     if factory not in _LOSS_FACTORIES:
         _LOSS_FACTORIES.append(factory)
+
+
+@contextlib.contextmanager
+def loss_factory_registered(factory):
+    """``with loss_factory_registered(f): train(...)`` -- ``f`` takes part in every (non
+    rgb_only) run started in the block and is removed afterwards, even on error."""
+    register_loss_factory(factory)
+    try:
+        yield factory
+    finally:
+        with contextlib.suppress(ValueError):
+            _LOSS_FACTORIES.remove(factory)
 
 
 def _l1(ctx: StepContext):

@@ -20,14 +20,6 @@ from bpy.types import Operator
 from ..bt4d_addon import gaussian_nodes as gn
 
 
-def _result(context):
-    results = gn.find_result_objects(context.scene)
-    if not results:
-        return None
-    obj = context.active_object
-    return obj if obj in results else results[0]
-
-
 def result_centre_and_radius(obj, capture_time: float) -> tuple[np.ndarray, float]:
     """Robust centre (opacity-weighted median) and radius (90th percentile distance) of the
     Gaussians at the sample nearest ``capture_time``, in world space."""
@@ -131,7 +123,7 @@ class BT4D_OT_add_orbit_camera(Operator):
         return bool(gn.find_result_objects(context.scene))
 
     def execute(self, context):
-        obj = _result(context)
+        obj = gn.pick_result_object(context)
         if obj is None:
             self.report({"ERROR"}, "No reconstruction in the scene")
             return {"CANCELLED"}
@@ -156,7 +148,7 @@ class BT4D_OT_freeze_capture_time(Operator):
         return bool(gn.find_result_objects(context.scene))
 
     def execute(self, context):
-        obj = _result(context)
+        obj = gn.pick_result_object(context)
         v = freeze(obj, context.scene)
         self.report({"INFO"}, f"Capture Time frozen at {v:.4f} s")
         return {"FINISHED"}
@@ -178,7 +170,7 @@ class BT4D_OT_realtime_capture_time(Operator):
         return bool(gn.find_result_objects(context.scene))
 
     def execute(self, context):
-        obj = _result(context)
+        obj = gn.pick_result_object(context)
         scene = context.scene
         t0, t1 = (float(x) for x in obj["bt4d_time_range"])
         fps = scene.render.fps / scene.render.fps_base

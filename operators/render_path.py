@@ -70,14 +70,6 @@ def output_path(scene, frame: int, file_format: str) -> str:
     return p + _EXT[file_format]
 
 
-def pick_result_object(context):
-    results = gaussian_nodes.find_result_objects(context.scene)
-    if not results:
-        return None
-    obj = context.active_object
-    return obj if obj in results else results[0]
-
-
 def collect_views(scene, camera, obj, frames) -> list:
     """Engine Views of ``camera`` at each frame, at the Capture Time ``obj`` shows then."""
     views = []
@@ -125,7 +117,7 @@ class BT4D_OT_render_path(Operator):
 
     def _prepare(self, context):
         scene = context.scene
-        obj = pick_result_object(context)
+        obj = gaussian_nodes.pick_result_object(context)
         if obj is None:
             raise RuntimeError("No reconstruction in the scene: load a result first")
         if scene.camera is None:
