@@ -75,6 +75,11 @@ def draw_reconstruction(layout, context) -> None:
     col = layout.column()
     col.prop(r, "resume")
     running = r.status == "RUNNING"
+    adv = col.column(align=True)
+    adv.enabled = not running
+    adv.label(text="Advanced")
+    adv.prop(s, "freeze_static")
+    adv.prop(s, "early_stop")
     row = col.row(align=True)
     row.enabled = bool(s.capture_dir) and not running
     row.operator("bt4d.reconstruct", text="Reconstruct", icon="PLAY")

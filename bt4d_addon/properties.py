@@ -1,8 +1,8 @@
 """``Scene.bt4d``: the capture that was imported and the reconstruction settings.
 
 Capture summary fields are written by ``bt4d.import_capture``; the reconstruction
-settings (preset, seconds, output_dir, device, use_spikes) are read by the training
-operator.
+settings (preset, seconds, output_dir, device, use_spikes, and the advanced switches
+freeze_static / early_stop) are read by the training operator.
 """
 from __future__ import annotations
 
@@ -54,6 +54,15 @@ class BT4D_SceneSettings(PropertyGroup):
     use_spikes: BoolProperty(
         name="Use Spikes", default=True,
         description="Train the fine (spike-guided) deformation branch when the capture has a spike stream")
+    # -- advanced: skipping what the scene does not need (engine.train switches) ----------
+    freeze_static: BoolProperty(
+        name="Freeze Static Gaussians", default=False,
+        description="Gaussians that do not move stop using the deformation field (CPOStream freezing): "
+                    "faster deformation steps on scenes with a static background")
+    early_stop: BoolProperty(
+        name="Stop Early", default=False,
+        description="Stop training when the PSNR on a few held-out eval frames stops improving "
+                    "(train frames when the capture has none)")
 
     @property
     def has_capture(self) -> bool:

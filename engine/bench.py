@@ -5,9 +5,11 @@ Design (documented here because the numbers depend on it):
 * Each configuration -- a preset x a *variant* -- is one call of ``engine.train.train``
   with a wall-clock budget (``seconds``) in a fresh run directory ``OUT/<preset>-<variant>``.
   Variants: ``full`` (the method as configured, spike terms when the spike branch is
-  registered), ``rgb_only`` (the RGB-only baseline), and the skip features ``freeze``
-  (:class:`engine.freezing.FreezeHook`), ``early_stop`` (stop when a held-out proxy stops
-  improving) and ``cull`` (prune Gaussians outside every train frustum).
+  registered), ``rgb_only`` (the RGB-only baseline), and the skip switches of the trainer
+  (:data:`VARIANT_OVERRIDES`, ``TrainConfig``): ``freeze`` (``freeze_static``,
+  :class:`engine.freezing.TrainFreezer`), ``early_stop`` (``early_stop``: stop when a
+  held-out proxy stops improving, :class:`engine.train.EarlyStop`) and ``cull``
+  (``cull_frustum``: prune Gaussians outside every train frustum).
 * **Curve samples are periodic checkpoints evaluated afterwards**: the run's
   ``checkpoint_every_s`` is set to ``eval_every_s``; every time the trainer writes a new
   ``checkpoint.pt`` the progress callback hard-links it into ``snapshots/`` (no copy; the
@@ -22,12 +24,12 @@ Design (documented here because the numbers depend on it):
 * Peak memory is the process's peak resident set size during the run (Linux ``VmHWM``,
   reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
   process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
-* Early stopping needs the model inside the loop: its proxy is the PSNR on a few eval
-  frames (``proxy_frames``, reported separately: ``psnr_excl_proxy`` scores the other
-  frames), evaluated every 5% of the steps inside the progress callback (its cost *is*
-  counted in the wall time); training is cancelled after ``patience`` (3) proxy
-  evaluations without a gain of ``min_delta`` (0.05 dB), once the deformation stage has
-  run for ``min_deform_fraction`` (25%) of its steps.
+* Early stopping runs inside the trainer: its proxy is the PSNR on a few eval frames
+  (``early_stop_proxy_frames``, reported separately: ``psnr_excl_proxy`` scores the other
+  frames), evaluated every ``early_stop_every_fraction`` of the steps (its cost *is*
+  counted in the wall time); training stops after ``early_stop_patience`` proxy
+  evaluations without a gain of ``early_stop_min_delta`` dB, once the deformation stage has
+  run for ``early_stop_min_deform_fraction`` of its steps.
 * Micro-benchmarks in the same run: rasterizer fast path (``cpu``) vs the dense
   ``reference`` and the plain-PyTorch tiled path (``engine.cli.bench_raster``'s scene and
   timer), and spike decoding ``read_spikes`` vs the community per-frame loader and the
@@ -38,7 +40,6 @@ against wall time), ``bench.md`` (final table + micro-benchmarks), ``bench.json`
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -58,6 +59,9 @@ import numpy as np
 import torch
 
 VARIANTS = ("full", "rgb_only", "freeze", "early_stop", "cull")
+# the skip variants are switches of the trainer (engine.presets.TrainConfig, "skipping" block)
+VARIANT_OVERRIDES = {"freeze": {"freeze_static": True}, "early_stop": {"early_stop": True},
+                     "cull": {"cull_frustum": True}}
 CSV_FIELDS = ("preset", "variant", "wall_s", "step", "total_steps", "psnr", "ssim", "num_gaussians")
 
 
@@ -158,123 +162,6 @@ def score_checkpoint(path: Path, capture, frames, cache: FrameCache) -> dict:
     return out
 
 
-# ----------------------------------------------------------------------------- trainer access
-
-class TrainerGrab:
-    """A loss factory that only records the trainer (``engine.train.register_loss_factory``)
-    so that the progress callback can reach the model between steps. Non-rgb_only runs only."""
-
-    def __init__(self):
-        self.trainer = None
-
-    def __call__(self, trainer):
-        self.trainer = trainer
-        return []
-
-
-# ----------------------------------------------------------------------------- skip features
-
-@dataclass
-class EarlyStopper:
-    """Cancel training when the proxy PSNR stops improving (see module doc)."""
-
-    capture: object
-    frames: list
-    every_fraction: float = 0.05
-    patience: int = 3
-    min_delta: float = 0.05
-    min_deform_fraction: float = 0.25
-    cache: FrameCache = field(default_factory=FrameCache)
-    history: list = field(default_factory=list)
-    stopped_at: dict | None = None
-    _next: int = 0
-    _best: float = -math.inf
-    _bad: int = 0
-
-    def __call__(self, p: dict, trainer, cancel: threading.Event) -> None:
-        if trainer is None or trainer.model is None or p["step"] < self._next:
-            return
-        self._next = p["step"] + max(1, int(self.every_fraction * p["total_steps"]))
-        s0 = trainer.static_steps
-        deform_done = (p["step"] - s0) / max(1, p["total_steps"] - s0)
-        t0 = time.perf_counter()
-        score = score_model(trainer.model, self.capture, self.frames, self.cache)["psnr"]
-        self.history.append({"step": p["step"], "elapsed_s": p["elapsed_s"], "proxy_psnr": score,
-                             "eval_s": time.perf_counter() - t0})
-        if p["stage"] != "deform" or deform_done < self.min_deform_fraction:
-            self._best = max(self._best, score)
-            return
-        if score > self._best + self.min_delta:
-            self._best, self._bad = score, 0
-        else:
-            self._bad += 1
-            if self._bad >= self.patience:
-                self.stopped_at = {"step": p["step"], "total_steps": p["total_steps"], "proxy_psnr": score,
-                                   "best_proxy_psnr": self._best}
-                cancel.set()
-
-
-def frustum_cull_mask(trainer, margin_px: float = 0.0, times=None) -> torch.Tensor:
-    """bool [N]: Gaussians invisible (radius 0: behind, beyond the image box, or below 1/255
-    opacity) in every train view, at the canonical positions and -- once the deformation
-    field exists -- at ``times`` (default: the train frame times) as well."""
-    from .raster.projection import project_gaussians
-
-    model = trainer.model
-    g = model.gaussians
-    views = {}
-    for it in trainer.items:
-        key = tuple(np.round(it["viewmat"][0].cpu().numpy().ravel(), 6)) + (it["width"], it["height"])
-        views.setdefault(key, it)
-    with torch.no_grad():
-        positions = [g.means.detach()]
-        if model.deformation is not None and model.use_deformation:
-            for t in (times if times is not None else trainer.frame_times):
-                d = model.deformation(g.means, g.quats, g.log_scales, g.opacity_logits, float(t))
-                positions.append(d["means"].detach())
-        visible = torch.zeros(g.num_gaussians, dtype=torch.bool, device=g.means.device)
-        scales = torch.exp(g.log_scales.detach())
-        opac = torch.sigmoid(g.opacity_logits.detach())
-        for it in views.values():
-            w, h = it["width"] + 2 * margin_px, it["height"] + 2 * margin_px
-            K = it["K"].clone()
-            K[:, 0, 2] += margin_px
-            K[:, 1, 2] += margin_px
-            for pos in positions:
-                proj = project_gaussians(pos, g.quats.detach(), scales, opac, it["viewmat"], K, int(w), int(h))
-                visible |= proj.radii[0] > 0
-    return ~visible
-
-
-@dataclass
-class Culler:
-    """Prune Gaussians outside every train frustum, between steps (progress callback): after
-    the first step, when the deformation stage starts, and right after each densification
-    (detected as a change of the Gaussian count; the densification statistics were just
-    reset there, so pruning then does not disturb them)."""
-
-    min_keep: int = 16
-    pruned: int = 0
-    events: list = field(default_factory=list)
-    _last_n: int = -1
-
-    def __call__(self, p: dict, trainer, cancel) -> None:
-        if trainer is None or trainer.model is None:
-            return
-        step = p["step"]
-        g = trainer.model.gaussians
-        changed = g.num_gaussians != self._last_n and self._last_n >= 0
-        if step == 1 or step == trainer.static_steps + 1 or changed:
-            mask = frustum_cull_mask(trainer)
-            n = int(mask.sum())
-            if n and g.num_gaussians - n >= self.min_keep:
-                g.prune(mask)
-                trainer.model.static_mask = None
-                self.pruned += n
-                self.events.append({"step": step, "pruned": n, "left": g.num_gaussians})
-        self._last_n = g.num_gaussians
-
-
 # ----------------------------------------------------------------------------- one run
 
 @dataclass
@@ -297,10 +184,19 @@ def _variant_kwargs(variant: str) -> dict:
     return {"rgb_only": variant == "rgb_only"}
 
 
+def variant_overrides(variant: str, overrides: dict | None = None, proxy_frames: int | None = None) -> dict:
+    """``overrides`` plus the variant's skip switch (an explicit override wins)."""
+    ov = dict(VARIANT_OVERRIDES.get(variant, {}))
+    if variant == "early_stop" and proxy_frames is not None:
+        ov["early_stop_proxy_frames"] = int(proxy_frames)
+    ov.update(overrides or {})
+    return ov
+
+
 def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float, eval_every_s: float,
             eval_stride: int = 1, overrides: dict | None = None, seed: int = 0, proxy_frames: int = 4,
             train_fn: Callable | None = None, evaluate_fn: Callable | None = None, flicker: bool = True,
-            bar_factory=None, device=None, freeze_kwargs: dict | None = None) -> RunResult:
+            bar_factory=None, device=None) -> RunResult:
     """Train one (preset, variant) for ``seconds`` and sample its error curve (module doc)."""
     if train_fn is None:
         from .train import train as train_fn
@@ -313,26 +209,15 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
         shutil.rmtree(run_dir)
     snaps = run_dir / "snapshots"
     snaps.mkdir(parents=True)
-    ov = dict(overrides or {})
+    _variant_kwargs(variant)  # rejects unknown variants before anything is written
+    ov = variant_overrides(variant, overrides, proxy_frames)
     ov["checkpoint_every_s"] = float(eval_every_s)
     cache = FrameCache()
     all_eval = sorted(capture.eval_frames, key=lambda f: (f.camera, f.time))
-    proxy = []
-    if variant == "early_stop" and all_eval:
-        idx = np.linspace(0, len(all_eval) - 1, min(proxy_frames, len(all_eval))).round().astype(int)
-        proxy = [all_eval[i] for i in sorted(set(idx.tolist()))]
     curve_frames = select_eval_frames(capture, eval_stride)
 
-    grab = TrainerGrab()
-    hooks = []
     cancel = threading.Event()
     extra: dict = {}
-    stopper = EarlyStopper(capture, proxy) if variant == "early_stop" else None
-    culler = Culler() if variant == "cull" else None
-    if stopper:
-        hooks.append(stopper)
-    if culler:
-        hooks.append(culler)
     step_elapsed: dict[int, float] = {}
     seen = {"ino": None, "n": 0}
     bar = None
@@ -359,26 +244,16 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
                 os.link(ckpt, dst)
             except OSError:
                 shutil.copy2(ckpt, dst)
-        for h in hooks:
-            h(p, grab.trainer, cancel)
 
-    ctx = contextlib.ExitStack()
-    if variant in ("early_stop", "cull", "freeze"):
-        from .train import loss_factory_registered
-
-        ctx.enter_context(loss_factory_registered(grab))
-    hook = None
-    if variant == "freeze":
-        from .freezing import freezing_enabled
-
-        hook = ctx.enter_context(freezing_enabled(**(freeze_kwargs or {})))
     reset_ok = reset_peak_rss()
     t0 = time.perf_counter()
-    with ctx:
-        summary = train_fn(capture, run_dir, preset=preset, seconds=seconds, resume=False, seed=seed,
-                           progress=progress, cancel=cancel, overrides=ov, device=device,
-                           **_variant_kwargs(variant))
+    cpu0 = time.process_time()
+    summary = train_fn(capture, run_dir, preset=preset, seconds=seconds, resume=False, seed=seed,
+                       progress=progress, cancel=cancel, overrides=ov, device=device,
+                       **_variant_kwargs(variant))
     wall = time.perf_counter() - t0
+    # process CPU seconds: on a shared machine a steadier measure of the work than wall time
+    extra["cpu_s"] = round(time.process_time() - cpu0, 2)
     peak, src = peak_rss_mb()
     if not reset_ok:
         src += ", not reset between runs"
@@ -407,8 +282,11 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
     shutil.rmtree(snaps, ignore_errors=True)
 
     final = dict(evaluate_fn(run_dir, capture))
+    skips = summary.get("skips") or {}
+    es = skips.get("early_stop") or {}
+    proxy = set(es.get("frames") or []) if es.get("proxy") == "eval" else set()
     if proxy:
-        rest = [f for f in all_eval if all(f is not q for q in proxy)]
+        rest = [f for f in all_eval if str(f.path) not in proxy]
         from .model import load_run
 
         final["psnr_excl_proxy"] = score_model(load_run(run_dir).model, capture, rest, cache)["psnr"]
@@ -419,13 +297,11 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
             final["flicker"] = run_flicker(run_dir, capture)
         except Exception as exc:
             final["flicker"] = {"error": f"{type(exc).__name__}: {exc}"}
-    if stopper is not None:
-        extra["early_stop"] = {"stopped_at": stopper.stopped_at, "history": stopper.history}
-    if culler is not None:
-        extra["cull"] = {"pruned": culler.pruned, "events": culler.events}
-    if hook is not None:
-        extra["freeze"] = hook.summary()
-        extra["freeze_log"] = hook.log[-50:]
+    for name in ("early_stop", "cull", "freeze"):  # what the trainer's skip switches did
+        if skips.get(name) is not None:
+            extra[name] = skips[name]
+    if "budget_estimates" in summary:
+        extra["budget_estimates"] = summary["budget_estimates"]
     return RunResult(preset, variant, str(run_dir), dict(summary), curve, final, round(peak, 1), src, wall, extra)
 
 
@@ -576,9 +452,9 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
                 else f"{(meta.get('overrides') or {}).get('iterations', 'preset')} steps per run")
              + f"; curve: eval frames every {meta.get('eval_stride')}, "
              f"checkpoint every {meta.get('eval_every_s')} s. Shared CPU: timings are noisy.", "",
-             "| preset | variant | steps | train s | PSNR | SSIM | PSNR inter | PSNR dyn | Gaussians | "
+             "| preset | variant | steps | train s | CPU s | PSNR | SSIM | PSNR inter | PSNR dyn | Gaussians | "
              "t to final-0.5 dB (s) | peak RSS MB | flicker x255 | notes |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         fin = r.final
         fl = fin.get("flicker") or {}
@@ -597,7 +473,7 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
             notes.append(f"frozen {fz['fraction_frozen'] * 100:.0f}% at end, woken {fz['woken']}")
         lines.append(
             f"| {r.preset} | {r.variant} | {r.summary.get('step')}/{r.summary.get('total_steps')} | "
-            f"{_f(r.summary.get('train_seconds'), 1)} | {_f(fin.get('psnr'))} | {_f(fin.get('ssim'), 4)} | "
+            f"{_f(r.summary.get('train_seconds'), 1)} | {_f(r.extra.get('cpu_s'), 1)} | {_f(fin.get('psnr'))} | {_f(fin.get('ssim'), 4)} | "
             f"{_f(fin.get('psnr_interframe'))} | {_f(fin.get('psnr_dynamic'))} | {fin.get('num_gaussians', '-')} | "
             f"{_f(time_to_within(r.curve, fin.get('psnr') or float('nan')), 1)} | {_f(r.peak_rss_mb, 0)} | "
             f"{_f(fl.get('flicker_255'), 3)} | {'; '.join(notes)} |")
@@ -679,7 +555,8 @@ def run_bench(capture, out_dir, *, presets=("fast",), variants=("full", "rgb_onl
             results.append(r)
             if log:
                 log(f"{preset}-{variant}: psnr {_f(r.final.get('psnr'))} ssim {_f(r.final.get('ssim'), 4)} "
-                    f"steps {r.summary.get('step')} in {_f(r.summary.get('train_seconds'), 1)} s, "
+                    f"steps {r.summary.get('step')} in {_f(r.summary.get('train_seconds'), 1)} s "
+                    f"({_f(r.extra.get('cpu_s'), 1)} CPU s), "
                     f"peak RSS {r.peak_rss_mb:.0f} MB")
     micro_res = {}
     frozen_runs = [r for r in results if r.variant == "freeze"]

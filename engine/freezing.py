@@ -22,13 +22,11 @@ Here the same two modules decide which Gaussians skip the 4D deformation field:
   static camera): mean |R_t - R_{t-1}| over pixels whose ground truth does not change, and
   the long-range drift |R_t - R_0| (E_warp's second term).
 
-:class:`FreezeHook` wires a Freezer into :mod:`engine.train` from outside, through
-``train.register_loss_factory`` (a loss term that returns no loss, runs the periodic checks
-and sets ``Model4D.static_mask``) -- see :func:`freezing_enabled`.
+:class:`TrainFreezer` is the trainer's side (``TrainConfig.freeze_static``): it runs the
+periodic checks in the deformation stage, sets ``Model4D.static_mask`` and is checkpointed
+with the run.
 """
 from __future__ import annotations
-
-import contextlib
 
 import numpy as np
 import torch
@@ -385,36 +383,42 @@ def run_flicker(run_dir, capture=None, *, camera: str | None = None, max_frames:
     return out
 
 
-# ----------------------------------------------------------------------------- trainer hook
+# ----------------------------------------------------------------------------- trainer side
 
-class FreezeHook:
-    """Runs a :class:`Freezer` inside :mod:`engine.train` without editing it.
+class TrainFreezer:
+    """The freezing switch of :mod:`engine.train` (``TrainConfig.freeze_static``): a
+    :class:`Freezer` run by the trainer it belongs to, in the deformation stage.
 
-    Registered through ``engine.train.register_loss_factory`` (see :func:`freezing_enabled`),
-    it adds one loss term that never contributes a loss but, in the deformation stage:
+    The trainer calls :meth:`after_step` after each optimiser step (before densification)
+    and :meth:`maybe_check` after it. Together they:
 
     * every ``check_every`` steps (default: ``checks_per_stage`` checks over the deformation
-      stage) after ``start_fraction`` of the deformation stage,
-      measures each Gaussian's motion in pixels over the train frame times
-      (:func:`deformation_motion`) -- the frozen ones are measured too, through the field,
-      so that the prediction module can also release them -- and ``update``s the freezer;
-    * every step (once something is frozen), wakes frozen Gaussians under a high
-      photometric residual of the current frame (observation module);
-    * bakes the time-averaged deformation of newly frozen Gaussians into their canonical
+      stage) after ``start_fraction`` of the deformation stage, measure each Gaussian's
+      motion in pixels over the train frame times (:func:`deformation_motion`) -- the frozen
+      ones are measured too, through the field, so that the prediction module can also
+      release them -- and ``update`` the freezer;
+    * every step (once something is frozen), wake frozen Gaussians under a high photometric
+      residual of the step's frame (observation module);
+    * bake the time-averaged deformation of newly frozen Gaussians into their canonical
       parameters (:func:`bake_static`), so freezing does not make them jump;
-    * keeps ``Model4D.static_mask`` equal to the frozen mask (frozen Gaussians skip the
+    * keep ``Model4D.static_mask`` equal to the frozen mask (frozen Gaussians skip the
       deformation field: ``DeformationField.forward(mask=...)``);
-    * follows densification by wrapping the Gaussians' ``_replace`` (keep mask + new rows).
+    * follow densification and pruning (:meth:`follow`: keep mask + new rows; the trainer
+      routes the Gaussians' ``_replace`` through it).
 
-    Statistics (checks, frozen fraction over time, woken counts) are in :attr:`log`.
+    :meth:`state_dict` / :meth:`load_state_dict` go into the trainer's checkpoint, so a
+    resumed run freezes exactly as an uninterrupted one. Statistics are in :attr:`log`.
     """
 
-    def __init__(self, *, k_checks: int = 3, motion_eps_px: float = 0.3, wake_residual: float = 0.15,
+    LOG_KEEP = 50
+
+    def __init__(self, trainer, *, k_checks: int = 3, motion_eps_px: float = 0.3, wake_residual: float = 0.15,
                  check_every: int | None = None, checks_per_stage: int = 20, start_fraction: float = 0.3,
                  max_times: int = 8, observe: bool = True, bake: bool = True):
-        self.k_checks = k_checks
-        self.motion_eps_px = motion_eps_px
-        self.wake_residual = wake_residual
+        self.trainer = trainer
+        self.k_checks = int(k_checks)
+        self.motion_eps_px = float(motion_eps_px)
+        self.wake_residual = float(wake_residual)
         # None: a fixed number of checks per deformation stage (schedules are step-count relative)
         self.check_every = None if check_every is None else max(1, int(check_every))
         self.checks_per_stage = max(1, int(checks_per_stage))
@@ -424,37 +428,41 @@ class FreezeHook:
         self.bake = bool(bake)
         self.freezer: Freezer | None = None
         self.log: list[dict] = []
-        self.trainer = None
-        self._hooked = None
+        self.num_checks = 0
+        self.woken = 0
 
-    # the factory registered with engine.train
-    def __call__(self, trainer):
-        from .train import LossTerm
+    @classmethod
+    def from_config(cls, trainer, cfg) -> "TrainFreezer":
+        return cls(trainer, k_checks=cfg.freeze_k_checks, motion_eps_px=cfg.freeze_motion_eps_px,
+                   wake_residual=cfg.freeze_wake_residual, checks_per_stage=cfg.freeze_checks_per_stage,
+                   start_fraction=cfg.freeze_start_fraction)
 
-        self.trainer = trainer
-        self.freezer = None
-        self._hooked = None
-        return [LossTerm("freeze", 1.0, self._term, stages=("deform",))]
+    # -------------------------------------------------------------- bookkeeping
+    def _active(self) -> bool:
+        m = self.trainer.model
+        return m is not None and m.deformation is not None and m.use_deformation
 
-    def _hook_gaussians(self, g) -> None:
-        if self._hooked is g:
+    def _ensure(self) -> Freezer:
+        g = self.trainer.model.gaussians
+        if self.freezer is None or self.freezer.num_gaussians != g.num_gaussians:
+            self.freezer = Freezer(g.num_gaussians, self.k_checks, self.motion_eps_px, self.wake_residual,
+                                   device=g.means.device)
+        return self.freezer
+
+    def follow(self, keep, n_new: int) -> None:
+        """The Gaussians were replaced: ``keep`` (bool over the old rows, None = all) survive,
+        ``n_new`` rows were appended (they start active)."""
+        f = self.freezer
+        if f is None:
             return
-        hook = self
-        cls_replace = type(g)._replace
+        n_old = f.num_gaussians if keep is None else int(keep.shape[0])
+        if n_old != f.num_gaussians:  # lost track: start over
+            self.freezer = None
+        else:
+            f.resize_on_densify(keep, int(n_new))
+        self.sync_mask()
 
-        def _replace(new_tensors, keep, n_new, _g=g):
-            cls_replace(_g, new_tensors, keep, n_new)
-            if hook.freezer is not None:
-                if hook.freezer.num_gaussians == (keep.shape[0] if keep is not None else hook.freezer.num_gaussians):
-                    hook.freezer.resize_on_densify(keep, int(n_new))
-                else:  # lost track: start over
-                    hook.freezer = None
-                hook._sync_mask()
-
-        g._replace = _replace
-        self._hooked = g
-
-    def _sync_mask(self) -> None:
+    def sync_mask(self) -> None:
         model = self.trainer.model
         if self.freezer is None or self.freezer.num_frozen == 0:
             model.static_mask = None
@@ -468,7 +476,41 @@ class FreezeHook:
             ts = [ts[i] for i in idx]
         return ts
 
-    def _check(self, step: int) -> None:
+    def schedule(self) -> tuple[int, int]:
+        """(first check step, steps between checks) for the trainer's current total."""
+        tr = self.trainer
+        s0 = tr.static_steps
+        deform_steps = max(1, tr.total_steps - s0)
+        start = s0 + int(self.start_fraction * deform_steps)
+        every = self.check_every or max(1, deform_steps // self.checks_per_stage)
+        return start, every
+
+    # -------------------------------------------------------------- per step
+    @torch.no_grad()
+    def after_step(self, step: int, item: dict, rgb: torch.Tensor, meta: dict) -> None:
+        """Observation module on this step's render (before densification changes the rows)."""
+        if not self._active():
+            return
+        f = self._ensure()
+        if self.observe_enabled and f.num_frozen and meta.get("means2d") is not None:
+            means2d, radii = meta["means2d"][0], meta["radii"][0]
+            if means2d.shape[0] == f.num_gaussians:
+                res = residual_map(rgb.detach(), item["image"], blur=1)
+                woken = f.observe(residual_scores(res, means2d, radii))
+                self.woken += woken
+                if woken and self.log:
+                    self.log[-1]["woken"] = self.log[-1].get("woken", 0) + woken
+        self.sync_mask()
+
+    @torch.no_grad()
+    def maybe_check(self, step: int) -> dict | None:
+        """Prediction module: a motion check at the scheduled steps. Returns its record."""
+        if not self._active():
+            return None
+        start, every = self.schedule()
+        if step < start or (step - start) % every:
+            return None
+        f = self._ensure()
         tr = self.trainer
         g = tr.model.gaussians
         field = tr.model.deformation
@@ -477,57 +519,40 @@ class FreezeHook:
             views.setdefault(it["camera"], it)
         vm = torch.cat([v["viewmat"] for v in views.values()])
         K = torch.cat([v["K"] for v in views.values()])
-        motion = deformation_motion(field, g.means, g.quats, g.log_scales, g.opacity_logits, self._times(),
+        times = self._times()
+        motion = deformation_motion(field, g.means, g.quats, g.log_scales, g.opacity_logits, times,
                                     viewmats=vm, Ks=K)
-        before = self.freezer.frozen.clone()
-        info = self.freezer.update(motion)
+        before = f.frozen.clone()
+        info = f.update(motion)
         if self.bake:
-            info["baked"] = bake_static(g, field, self.freezer.frozen & ~before, self._times())
-        info.update(step=step, num_gaussians=g.num_gaussians, fraction=self.freezer.fraction_frozen)
+            info["baked"] = bake_static(g, field, f.frozen & ~before, times)
+        info.update(step=step, num_gaussians=g.num_gaussians, fraction=round(f.fraction_frozen, 4))
+        self.num_checks += 1
         self.log.append(info)
+        del self.log[:-self.LOG_KEEP]
+        self.sync_mask()
+        return info
 
-    def _term(self, ctx):
-        tr = ctx.trainer
-        model = tr.model
-        if model.deformation is None:
-            return None
-        g = model.gaussians
-        self._hook_gaussians(g)
-        if self.freezer is None or self.freezer.num_gaussians != g.num_gaussians:
-            self.freezer = Freezer(g.num_gaussians, self.k_checks, self.motion_eps_px, self.wake_residual,
-                                   device=g.means.device)
-        s0 = tr.static_steps
-        deform_steps = max(1, tr.total_steps - s0)
-        start = s0 + int(self.start_fraction * deform_steps)
-        every = self.check_every or max(1, deform_steps // self.checks_per_stage)
-        if ctx.step >= start and (ctx.step - start) % every == 0:
-            self._check(ctx.step)
-        if self.observe_enabled and self.freezer.num_frozen and ctx.meta.get("means2d") is not None:
-            with torch.no_grad():
-                res = residual_map(ctx.rgb.detach(), ctx.item["image"], blur=1)
-                scores = residual_scores(res, ctx.meta["means2d"][0], ctx.meta["radii"][0])
-                woken = self.freezer.observe(scores)
-            if woken and self.log:
-                self.log[-1]["woken"] = self.log[-1].get("woken", 0) + woken
-        self._sync_mask()  # takes effect from the next render
-        return None
+    # -------------------------------------------------------------- checkpoints / report
+    def state_dict(self) -> dict:
+        return {"freezer": None if self.freezer is None else self.freezer.state_dict(), "log": list(self.log),
+                "num_checks": self.num_checks, "woken": self.woken}
+
+    def load_state_dict(self, state: dict) -> None:
+        fs = state.get("freezer")
+        dev = self.trainer.model.gaussians.means.device if self.trainer.model is not None else "cpu"
+        self.freezer = None if fs is None else Freezer.from_state_dict(fs, device=dev)
+        self.log = list(state.get("log", []))
+        self.num_checks = int(state.get("num_checks", len(self.log)))
+        self.woken = int(state.get("woken", 0))
 
     def summary(self) -> dict:
         f = self.freezer
-        return {"checks": len(self.log), "frozen": 0 if f is None else f.num_frozen,
+        return {"checks": self.num_checks, "frozen": 0 if f is None else f.num_frozen,
+                "num_gaussians": 0 if f is None else f.num_gaussians,
                 "fraction_frozen": 0.0 if f is None else round(f.fraction_frozen, 4),
-                "woken": 0 if f is None else f.total_woken,
+                "woken": self.woken,
                 "mean_fraction_frozen": round(float(np.mean([r["fraction"] for r in self.log])), 4) if self.log else 0.0}
-
-
-@contextlib.contextmanager
-def freezing_enabled(**kwargs):
-    """``with freezing_enabled(k_checks=3) as hook: train(...)`` -- runs :class:`FreezeHook`
-    inside every (non rgb_only) training started in the block, then unregisters it."""
-    from .train import loss_factory_registered
-
-    with loss_factory_registered(FreezeHook(**kwargs)) as hook:
-        yield hook
 
 
 def frozen_deformation_cost(num_gaussians: int, num_frozen: int) -> float:
@@ -535,5 +560,5 @@ def frozen_deformation_cost(num_gaussians: int, num_frozen: int) -> float:
     return (num_gaussians - num_frozen) / max(1, num_gaussians) if num_gaussians else 0.0
 
 
-__all__ = ["Freezer", "FreezeHook", "freezing_enabled", "deformation_motion", "deformed_over_time", "bake_static", "residual_map", "residual_scores",
+__all__ = ["Freezer", "TrainFreezer", "deformation_motion", "deformed_over_time", "bake_static", "residual_map", "residual_scores",
            "abrupt_mask", "static_flicker", "run_flicker", "blur_box", "frozen_deformation_cost"]

@@ -64,6 +64,15 @@ class InstantSampler:
         self._rgb_queue: list[int] = []
         self._iv_queue: list[int] = []
 
+    def restrict(self, keep) -> int:
+        """Keep only the between-frame intervals ``k`` in ``keep`` (e.g. the spike windows
+        that show change, :mod:`engine.spike_change`). Returns how many were dropped."""
+        keep = {int(k) for k in keep}
+        before = len(self.intervals)
+        self.intervals = np.asarray([k for k in self.intervals.tolist() if k in keep], dtype=np.int64)
+        self._iv_queue = []
+        return before - len(self.intervals)
+
     @property
     def has_between(self) -> bool:
         return len(self.intervals) > 0
@@ -77,13 +86,34 @@ class InstantSampler:
         i = self._next(self._rgb_queue, np.arange(len(self.rgb_times)))
         return Instant("rgb", float(self.rgb_times[i]), frame=i)
 
-    def between_instant(self, interval: int | None = None, eps: float | None = None) -> Instant:
+    def between_instant(self, interval: int | None = None, eps: float | None = None,
+                        max_time: float | None = None) -> Instant | None:
+        """A between-frame instant (interval from the shuffled rounds unless given).
+
+        ``max_time``: only instants up to this time (the trainer's time curriculum: the
+        window of admitted capture time grows continuously, so in-between instants are
+        admitted before the next RGB frame and lead the motion towards it); returns None
+        when no covered interval starts before it."""
         if not self.has_between:
             raise ValueError("no between-frame interval is covered")
-        k = self._next(self._iv_queue, self.intervals) if interval is None else int(interval)
+        hi_eps = 1.0 - self.margin
+        if max_time is not None and interval is None:
+            lead = 1.0 / self.snap_hz if self.snap_hz else 0.0
+            allowed = self.intervals[self.rgb_times[self.intervals] + lead < max_time]
+            if len(allowed) == 0:
+                return None
+            if len(allowed) < len(self.intervals):  # the curriculum's front: uniform over what is open
+                k = int(allowed[self.rng.integers(len(allowed))])
+            else:
+                k = self._next(self._iv_queue, self.intervals)
+            t1, t2 = float(self.rgb_times[k]), float(self.rgb_times[k + 1])
+            hi_eps = min(hi_eps, (max_time - t1) / (t2 - t1))
+        else:
+            k = self._next(self._iv_queue, self.intervals) if interval is None else int(interval)
         t1, t2 = float(self.rgb_times[k]), float(self.rgb_times[k + 1])
         if eps is None:
-            eps = float(self.rng.uniform(self.margin, 1.0 - self.margin))
+            lo_eps = min(self.margin, hi_eps)
+            eps = float(self.rng.uniform(lo_eps, max(lo_eps, hi_eps)))
         t = t1 + eps * (t2 - t1)
         if self.snap_hz:
             t = self.snap_t0 + round((t - self.snap_t0) * self.snap_hz) / self.snap_hz

@@ -56,27 +56,40 @@ class Model4D(nn.Module):
         self.background = tuple(float(b) for b in background)
         self.use_deformation = deformation is not None
         self.static_mask = static_mask  # optional bool [N]: Gaussians frozen in time
+        # optional ``(canonical means [N,3]) -> bool [N]``: Gaussians a motion prior holds
+        # static (the spike branch: never any change where they project in the spike view);
+        # recomputed at every render so densification needs no bookkeeping; its last value
+        # is saved as ``prior_mask`` (a render node has no spike stream to recompute it)
+        self.static_prior = None
+        self.prior_mask: torch.Tensor | None = None  # the prior's last value, as saved
 
-    def attributes(self, t: float, campos=None, fine: torch.Tensor | None = None) -> dict:
-        """Deformed Gaussians at ``t``: means, quats, scales (linear), opacities, colors."""
+    def attributes(self, t: float, campos=None, fine: torch.Tensor | None = None,
+                   motion_only: bool = False) -> dict:
+        """Deformed Gaussians at ``t``: means, quats, scales (linear), opacities, colors.
+
+        ``motion_only``: the canonical Gaussians enter detached, so a loss on this render
+        trains the deformation field only (used for between-frame supervision)."""
         g = self.gaussians
         means, quats, log_scales, opac = g.means, g.quats, g.log_scales, g.opacity_logits
+        sh = None
+        if motion_only:
+            means, quats, log_scales, opac = means.detach(), quats.detach(), log_scales.detach(), opac.detach()
+            sh = g.sh.detach()
         color_delta = None
         if self.use_deformation and self.deformation is not None:
-            mask = None
-            if self.static_mask is not None and self.static_mask.shape[0] == means.shape[0]:
-                mask = ~self.static_mask
+            static = self.effective_static_mask()
+            mask = None if static is None else ~static
             d = self.deformation(means, quats, log_scales, opac, t, fine=fine, mask=mask)
             means, quats, log_scales, opac = d["means"], d["quats"], d["log_scales"], d["opacity_logits"]
             color_delta = d["color_delta"]
-        colors = g.colors(means, campos)
+        colors = g.colors(means, campos, sh=sh)
         if color_delta is not None:
             colors = (colors + color_delta).clamp_min(0.0)
         return {"means": means, "quats": quats, "scales": torch.exp(log_scales),
                 "opacities": torch.sigmoid(opac), "colors": colors}
 
     def render(self, vt: dict, t: float | None = None, *, background=None, fine=None, backend="auto",
-               render_depth: bool = True):
+               render_depth: bool = True, motion_only: bool = False):
         """Render one view (``view_tensors`` dict) at time ``t`` (default: the view's time).
 
         Returns (rgb [1,H,W,3], alpha [1,H,W,1], meta, attributes).
@@ -84,7 +97,7 @@ class Model4D(nn.Module):
         from .raster import rasterization
 
         t = vt["time"] if t is None else float(t)
-        attrs = self.attributes(t, campos=vt["campos"], fine=fine)
+        attrs = self.attributes(t, campos=vt["campos"], fine=fine, motion_only=motion_only)
         bg = self.background if background is None else background
         bgs = torch.as_tensor(bg, dtype=torch.float32, device=attrs["means"].device).reshape(1, 3)
         rgb, alpha, meta = rasterization(
@@ -92,6 +105,26 @@ class Model4D(nn.Module):
             vt["viewmat"], vt["K"], vt["width"], vt["height"], backgrounds=bgs, render_depth=render_depth,
             near_plane=self.near_plane, backend=backend)
         return rgb, alpha, meta, attrs
+
+    def effective_static_mask(self) -> torch.Tensor | None:
+        """bool [N]: ``static_mask`` (when it matches the Gaussian count) OR the static prior."""
+        n = self.gaussians.num_gaussians
+        mask = self.static_mask if self.static_mask is not None and self.static_mask.shape[0] == n else None
+        prior = self.prior_static()
+        if prior is not None:
+            mask = prior if mask is None else (mask | prior)
+        return mask
+
+    def prior_static(self) -> torch.Tensor | None:
+        """bool [N] of the static prior: live when one is attached, else as saved."""
+        n = self.gaussians.num_gaussians
+        if self.static_prior is not None:
+            with torch.no_grad():
+                self.prior_mask = self.static_prior(self.gaussians.means.detach())
+            return self.prior_mask
+        if self.prior_mask is not None and self.prior_mask.shape[0] == n:
+            return self.prior_mask
+        return None
 
     # ------------------------------------------------------------------ (de)serialisation
     def state(self) -> dict:
@@ -102,7 +135,8 @@ class Model4D(nn.Module):
             "use_deformation": self.use_deformation,
             "background": list(self.background),
             "near_plane": self.near_plane,
-            "static_mask": None if self.static_mask is None else self.static_mask.cpu(),
+            "static_mask": _cpu_or_none(self.static_mask),
+            "prior_mask": _cpu_or_none(self.prior_static()),
         }
 
     @classmethod
@@ -123,7 +157,13 @@ class Model4D(nn.Module):
         m.use_deformation = bool(state.get("use_deformation", deform is not None))
         sm = state.get("static_mask")
         m.static_mask = None if sm is None else sm.to(device)
+        pm = state.get("prior_mask")
+        m.prior_mask = None if pm is None else pm.to(device)
         return m
+
+
+def _cpu_or_none(t):
+    return None if t is None else t.cpu()
 
 
 class Scene4D:

@@ -116,6 +116,15 @@ class SpikeWindowCache:
             self._cache[k] = w
         return w
 
+    def change(self, block: int = 4):
+        """:class:`engine.spike_change.SpikeChange` of every interval (computed once)."""
+        ch = getattr(self, "_change", None)
+        if ch is None or ch.block != int(block):
+            from .spike_change import change_from_cache
+
+            ch = self._change = change_from_cache(self, block=int(block))
+        return ch
+
     def precompute(self) -> "SpikeWindowCache":
         for k in range(len(self.rgb_times) - 1):
             self.window(0.5 * (self.rgb_times[k] + self.rgb_times[k + 1]))

@@ -32,7 +32,7 @@ from torch import nn
 
 from .fine_deformation import FineDeformation, project_to_grid
 from .instants import InstantSampler
-from .interpolation import block_colour_loss, flow_interpolate, linear_blend
+from .interpolation import avg_pool_blocks, block_colour_loss, flow_interpolate, linear_blend
 from .spike_features import SpikeWindowCache
 from .spike_render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
 
@@ -56,6 +56,12 @@ DEFAULTS = {
     "between_colocated_p": 0.75,     # share of between renders at the spike camera's view
     "between_scale": 0.5,            # between-frame renders at this fraction of the RGB resolution
     "spike_time_resolution_per_frame": 6.0,  # HexPlane time cells per RGB frame with spikes
+    "between_curriculum": True,      # between-frame instants follow the trainer's time curriculum
+    "between_motion_only": False,    # between-frame losses train the deformation only (not the canonical Gaussians)
+    "spike_static_prior": True,      # Gaussians where the spike view never changes skip the deformation
+    "spike_skip_static": True,       # no between-frame renders in spike windows without change
+    "fine_change_gate": True,        # fine feature only where / when the spike view changes
+    "spike_change_block": 4,         # block size (spike pixels) of the change maps
     "baseline": "",                  # training-data variant (engine.baselines.KINDS)
     "baseline_per_interval": 9,
 }
@@ -120,13 +126,37 @@ class SpikeFineEncoder(nn.Module):
         if cache is None or not self.covers(float(t)):
             return zeros
         win = cache.window(float(t))
-        if self.net.per_gaussian:
+        gated = bool(self.spec.get("change_gate", False))
+        grid = vis = None
+        if self.net.per_gaussian or gated:
             world = (xyz_norm + 1.0) * 0.5 * (self.bounds_max - self.bounds_min) + self.bounds_min
             v = self.spec["view"]
             grid, vis = project_to_grid(world.detach(), torch.as_tensor(v["viewmat"]), torch.as_tensor(v["K"]),
                                         int(v["width"]), int(v["height"]))
-            return self.net(win, float(t), grid=grid, visible=vis)
-        return self.net(win, float(t)).expand(n, -1)
+        if self.net.per_gaussian:
+            f = self.net(win, float(t), grid=grid, visible=vis)
+        else:
+            f = self.net(win, float(t)).expand(n, -1)
+        if gated:
+            f = f * self.change_gate(cache, win.index, grid, vis)[:, None]
+        return f
+
+    def change_gate(self, cache: SpikeWindowCache, interval: int, grid: torch.Tensor,
+                    visible: torch.Tensor) -> torch.Tensor:
+        """[N] in [0, 1]: 0 in windows without change and for Gaussians whose canonical
+        position projects where the spike view never changes (engine.spike_change): static
+        regions get no spike-driven motion. The map is the union over all windows because
+        the canonical position of a moving object is where it is at t0, not at ``t``."""
+        ch = cache.change(int(self.spec.get("change_block", 4)))
+        if not bool(ch.changed[int(interval)].any()):
+            return grid.new_zeros(grid.shape[0])
+        key = (id(ch), grid.device)
+        if getattr(self, "_union_key", None) != key:
+            self._union = ch.union_map(1).to(grid.device)
+            self._union_key = key
+        g = torch.nn.functional.grid_sample(self._union.to(grid.dtype)[None, None], grid.reshape(1, 1, -1, 2),
+                                            mode="bilinear", padding_mode="zeros", align_corners=False).reshape(-1)
+        return g * visible.to(g.dtype)
 
 
 def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> SpikeFineEncoder | None:
@@ -151,6 +181,7 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
             "k_sub": int(opt(cfg, "fine_k_sub")), "d_model": int(opt(cfg, "fine_d_model")),
             "channels": int(opt(cfg, "fine_channels")), "per_gaussian": bool(opt(cfg, "fine_per_gaussian")),
             "frozen_encoder": bool(opt(cfg, "fine_frozen_encoder")),
+            "change_gate": bool(opt(cfg, "fine_change_gate")), "change_block": int(opt(cfg, "spike_change_block")),
             "bounds_min": field.bounds_min.tolist(), "bounds_max": field.bounds_max.tolist(), "view": view}
     enc = SpikeFineEncoder(field.feature_dim, spec).to(field.bounds_min.device)
     if cache is None or cache.k_sub != spec["k_sub"] or list(cache.rgb_times) != rgb_times:
@@ -218,6 +249,38 @@ class SpikeGuidance:
             self.precompute_flows()
         self.rng = np.random.default_rng(trainer.seed + 17)
         self._window_cache: SpikeWindowCache | None = None
+        self.change = None
+        self.skipped_intervals = 0
+        if self.stream is not None and opt(cfg, "spike_skip_static"):
+            self.skip_static_windows()
+
+    # --- skipping spike windows without change (engine.spike_change) --------------------------
+    def window_cache(self) -> SpikeWindowCache | None:
+        """Spike windows of the co-located camera's RGB intervals (shared with the fine branch)."""
+        if self._window_cache is None and self.stream is not None:
+            rgb_times = sorted({float(f.time) for f in self.real_frames if f.camera == self.colocated})
+            if len(rgb_times) >= 2:
+                self._window_cache = SpikeWindowCache(self.stream, rgb_times, k_sub=int(opt(self.cfg, "fine_k_sub")))
+        return self._window_cache
+
+    def skip_static_windows(self) -> None:
+        """Drop the between-frame intervals whose spike window shows no change: their
+        in-between instants hold nothing the RGB frames at both ends do not already say."""
+        cache = self.window_cache()
+        if cache is None:
+            return
+        self.change = cache.change(int(opt(self.cfg, "spike_change_block")))
+        active = set(self.change.active_intervals.tolist())
+        from .spike_features import bracket
+
+        def keep(sampler):
+            ks = [k for k in sampler.intervals.tolist()
+                  if bracket(cache.rgb_times, 0.5 * (sampler.rgb_times[k] + sampler.rgb_times[k + 1]))[0] in active]
+            return sampler.restrict(ks)
+
+        self.skipped_intervals = keep(self.sampler)
+        if self.spike_sampler is not None:
+            keep(self.spike_sampler)
 
     # --- fine branch -----------------------------------------------------------------------
     def ensure_fine(self, tr) -> None:
@@ -226,6 +289,8 @@ class SpikeGuidance:
         field = tr.model.deformation if tr.model is not None else None
         if field is None or not tr.model.use_deformation or tr.deform_opt is None:
             return
+        if opt(self.cfg, "spike_static_prior") and tr.model.static_prior is None:
+            tr.model.static_prior = self.static_prior()
         if field.fine_encoder is None and getattr(field, "fine_spec", None) is not None:
             field.restore_fine_encoder()  # resumed checkpoint: spec + pending weights
         if field.fine_encoder is None:
@@ -242,6 +307,30 @@ class SpikeGuidance:
         params = [p for p in field.fine_encoder.parameters() if p.requires_grad]
         if params:
             tr.add_deformation_parameters(params, opt(self.cfg, "lr_fine"), name="fine")
+
+    def static_prior(self):
+        """``(canonical means [N,3]) -> bool [N]`` for ``Model4D.static_prior``: Gaussians in
+        front of the spike camera, inside its view, whose projection is two blocks or more
+        from any change in any spike window. They skip the deformation field: the spike loss
+        watches one viewpoint, and a field free to move the static background along that
+        camera's rays explains in-between changes with motion the other views never saw."""
+        cache = self.window_cache()
+        if cache is None or self.stream is None or self.stream.c2w is None or self.stream.intrinsics is None:
+            return None
+        change = cache.change(int(opt(self.cfg, "spike_change_block")))
+        union = change.union_map(dilate=2)
+        view = self.stream.view(0.0)
+        vm = torch.as_tensor(view.viewmat, dtype=torch.float32)
+        K = torch.as_tensor(self.stream.intrinsics.K, dtype=torch.float32)
+        w, h = int(self.stream.width), int(self.stream.height)
+
+        def prior(means: torch.Tensor) -> torch.Tensor:
+            grid, vis = project_to_grid(means.float(), vm.to(means.device), K.to(means.device), w, h)
+            g = torch.nn.functional.grid_sample(union.to(means.device)[None, None], grid.reshape(1, 1, -1, 2),
+                                                mode="bilinear", padding_mode="zeros", align_corners=False).reshape(-1)
+            return vis & (g <= 0)
+
+        return prior
 
     # --- observations ------------------------------------------------------------------------
     def observed(self, t: float, m: int):
@@ -289,6 +378,40 @@ class SpikeGuidance:
             self._flows[key] = flows
         return flow_interpolate(a, b, eps, flows=self._flows[key]).clamp(0, 1)[None]
 
+    TARGET_STEPS = 64  # block-colour targets are interpolated at 1/64-interval steps (cached)
+    TARGET_CACHE_BYTES = 256 * 2 ** 20
+
+    def pooled_target(self, cam: str, t: float, k: int) -> torch.Tensor | None:
+        """``AvgPool_k`` of the frame interpolated at ``t`` [1, H/k, W/k, 3], cached.
+
+        The interpolation time is rounded to 1/64 of the RGB interval (at 30 FPS, 0.5 ms:
+        a sub-pixel shift after 4x4 pooling even for fast motion), so the flow warp runs
+        once per (camera, instant) instead of every step; the cache keeps the pooled blocks
+        only and is bounded (least recently used out)."""
+        idx = self.by_cam.get(cam, [])
+        items = self.trainer.items
+        times = [items[i]["time"] for i in idx if not items[i].get("synthetic")]
+        if len(times) < 2:
+            return None
+        j = int(np.searchsorted(times, t, side="right")) - 1
+        if j < 0 or j >= len(times) - 1:
+            return None
+        q = int(round((t - times[j]) / (times[j + 1] - times[j]) * self.TARGET_STEPS))
+        key = (cam, j, q, int(k))
+        cache = self.__dict__.setdefault("_targets", {})
+        hit = cache.pop(key, None)
+        if hit is None:
+            tq = times[j] + (times[j + 1] - times[j]) * q / self.TARGET_STEPS
+            full = self.interpolated(cam, min(max(tq, times[j]), times[j + 1]))
+            if full is None:
+                return None
+            hit = avg_pool_blocks(full, k)
+            size = hit.numel() * hit.element_size()
+            while cache and (len(cache) + 1) * size > self.TARGET_CACHE_BYTES:
+                cache.pop(next(iter(cache)))
+        cache[key] = hit  # most recently used last
+        return hit
+
     # --- the between-frame render (once per step) ------------------------------------------
     def between(self, ctx) -> dict | None:
         cache = ctx.__dict__.get("_between", "unset")
@@ -300,19 +423,26 @@ class SpikeGuidance:
             return None
         self.ensure_fine(ctx.trainer)
         use_spike = self.renderer is not None and self.spike_sampler is not None and self.spike_sampler.has_between
+        window = getattr(ctx.trainer, "time_window", None)
+        max_time = window(ctx.step) if callable(window) and opt(self.cfg, "between_curriculum") else None
         if use_spike and self.colocated in self.by_cam and self.rng.random() < opt(self.cfg, "between_colocated_p"):
             cam = self.colocated
-            inst = self.spike_sampler.between_instant()
+            inst = self.spike_sampler.between_instant(max_time=max_time)
         else:
             if not self.sampler.has_between or opt(self.cfg, "block_loss_weight") <= 0:
                 return None
             cams = [c for c in self.by_cam if c != self.colocated] or list(self.by_cam)
             cam = cams[int(self.rng.integers(len(cams)))]
-            inst = self.sampler.between_instant()
+            inst = self.sampler.between_instant(max_time=max_time)
+        if inst is None:  # the time curriculum has not opened any interval yet
+            return None
         item = ctx.trainer.items[self.by_cam[cam][0]]
         vt = scaled_view(item, float(opt(self.cfg, "between_scale")))
         vt["time"] = inst.time
-        rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time)
+        if opt(self.cfg, "between_motion_only"):
+            rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time, motion_only=True)
+        else:
+            rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time)
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": vt["width"] / item["width"]}
         ctx.__dict__["_between"] = out
         return out
@@ -343,12 +473,12 @@ def _block_term(guid: SpikeGuidance):
         b = guid.between(ctx)
         if b is None:
             return None
-        target = guid.interpolated(b["camera"], b["instant"].time)
+        k = int(opt(guid.cfg, "block_size"))
+        target = guid.pooled_target(b["camera"], b["instant"].time, k)
         if target is None:
             return None
-        k = int(opt(guid.cfg, "block_size"))
         kp = max(1, int(round(k * b["scale"])))
-        return block_colour_loss(b["rgb"], target.to(b["rgb"].device), kp, k_target=k)
+        return block_colour_loss(b["rgb"], target.to(b["rgb"].device), kp, k_target=1)
     return fn
 
 

@@ -12,9 +12,22 @@ plus the deformation regularisers. The spike branch adds its own terms through
 :func:`register_loss_factory` (ignored with ``rgb_only=True``).
 
 The schedule is a function of the total step count only (``engine.presets``). With a
-wall-clock budget (``seconds``), the step count is chosen once, up front, from the measured
-cost of a few throw-away steps on a copy of the model; the budget is also enforced as a hard
-stop (reported as ``stopped_by_budget``).
+wall-clock budget (``seconds``), the step count is chosen up front from the measured cost of
+a few throw-away steps on a copy of the model, then re-estimated once from the rate of the
+real steps after ~5% of the run (the loaded-machine case), while the run is still in the
+static stage so that every schedule stays consistent (both estimates are in run.json); the
+budget is also enforced as a hard stop (reported as ``stopped_by_budget``).
+
+Skipping what a scene does not need (issue 6; switches of :class:`TrainConfig`, all off
+by default, checkpointed with the run so that cancel + resume equals an uninterrupted run):
+
+* ``freeze_static``: CPOStream freezing (:class:`engine.freezing.TrainFreezer`): Gaussians
+  that stay still for K motion checks skip the deformation field;
+* ``early_stop``: stop (status ``finished``, ``stopped_early`` in the summary and run.json)
+  when the PSNR on a few held-out eval frames (train frames when the capture has none)
+  stops improving (:class:`EarlyStop`);
+* ``cull_frustum``: prune Gaussians outside every train frustum after the first step, at
+  the start of the deformation stage and after each densification (:func:`frustum_cull_mask`).
 """
 from __future__ import annotations
 
@@ -36,6 +49,7 @@ import torch.nn.functional as F
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint, update_run_json
 from .deformation import make_field
 from .errors import RunError
+from .freezing import TrainFreezer
 from .gaussians import GaussianModel
 from .init_points import initial_points, stereo_depth_priors
 from .model import Model4D, default_device, near_plane_for_extent, view_tensors
@@ -252,6 +266,10 @@ class Trainer:
         self.extent = 1.0
         self.last_losses: dict = {}
         self._carried_to = -math.inf  # latest frame time whose motion was carried forward
+        # skipping (issue 6): owned by the trainer, checkpointed in state()
+        self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.freeze_static else None
+        self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.early_stop else None
+        self.cull: FrustumCuller | None = FrustumCuller() if cfg.cull_frustum else None
 
     # ---- schedule (a pure function of total_steps) --------------------------------------
     @property
@@ -311,6 +329,21 @@ class Trainer:
         g.setup_optimizer(cfg, self.extent)
         self.model = Model4D(g, None, background=cfg.background, near_plane=near_plane_for_extent(self.extent))
         self.model.use_deformation = False
+        self._watch_gaussians()
+
+    def _watch_gaussians(self) -> None:
+        """With freezing on, route the Gaussians' ``_replace`` (densify, prune, cull) through
+        the freezer so that its per-Gaussian state follows the rows."""
+        g = self.model.gaussians
+        if self.freeze is None or "_replace" in vars(g):
+            return
+        freeze, replace = self.freeze, type(g)._replace
+
+        def _replace(new_tensors, keep, n_new, _g=g):
+            replace(_g, new_tensors, keep, n_new)
+            freeze.follow(keep, n_new)
+
+        g._replace = _replace
 
     def start_deformation(self) -> None:
         """Create the deformation field around the current canonical Gaussians."""
@@ -424,6 +457,8 @@ class Trainer:
         g.optimizer.step()
         if self.deform_opt is not None and stage == "deform":
             self.deform_opt.step()
+        if self.freeze is not None and stage == "deform":  # observation module, on this render's rows
+            self.freeze.after_step(step, item, rgb, meta)
         info = {}
         if lo <= step < hi and step > 0 and (step - lo) % every == 0 and step != lo:
             gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
@@ -432,6 +467,10 @@ class Trainer:
                                        max_gaussians=cfg.max_gaussians, generator=gen if self.device.type == "cpu" else None)
         if cfg.opacity_reset_every and step > 0 and step % cfg.opacity_reset_every == 0 and step < hi:
             g.reset_opacity()
+        if self.cull is not None and (step == 0 or step == self.static_steps or info):
+            self.cull(self, step)
+        if self.freeze is not None and stage == "deform":  # prediction module (periodic motion checks)
+            self.freeze.maybe_check(step)
         with torch.no_grad():
             mse = float(((rgb.detach().clamp(0, 1) - item["image"]) ** 2).mean())
         self.last_losses = losses
@@ -451,7 +490,21 @@ class Trainer:
             "init": self.init_info,
             "gaussians": self.model.gaussians.num_gaussians,
             "carried_to": self._carried_to,
+            "skips": {"freeze": None if self.freeze is None else self.freeze.state_dict(),
+                      "early_stop": None if self.early_stop is None else self.early_stop.state_dict(),
+                      "cull": None if self.cull is None else self.cull.state_dict()},
         }
+
+    def skip_summary(self) -> dict:
+        """What the skip switches did (run.json / summary): only the enabled ones."""
+        out = {}
+        if self.freeze is not None:
+            out["freeze"] = self.freeze.summary()
+        if self.early_stop is not None:
+            out["early_stop"] = self.early_stop.summary()
+        if self.cull is not None:
+            out["cull"] = self.cull.summary()
+        return out
 
     def load_state(self, state: dict) -> int:
         self.total_steps = int(state["total_steps"])
@@ -465,7 +518,202 @@ class Trainer:
                 hook(self)
             if state.get("deform_optimizer") is not None:
                 self.deform_opt.load_state_dict(state["deform_optimizer"])
+        skips = state.get("skips") or {}
+        for name in ("freeze", "early_stop", "cull"):
+            owner = getattr(self, name)
+            if owner is not None and skips.get(name) is not None:
+                owner.load_state_dict(skips[name])
+        self._watch_gaussians()
+        if self.freeze is not None:
+            self.freeze.sync_mask()
         return int(state["step"])
+
+
+# ---------------------------------------------------------------------------------- skipping
+class EarlyStop:
+    """Stop when the PSNR on a few held-out frames (the *proxy*) stops improving.
+
+    The proxy is ``early_stop_proxy_frames`` eval frames of the capture, evenly spread over
+    them (sorted by camera and time); a capture without eval frames falls back to as many
+    train frames (``source == "train"``, noted in run.json). It is scored every
+    ``early_stop_every_fraction`` of the steps (its cost counts in the run's wall time);
+    training stops after ``early_stop_patience`` evaluations without a gain of
+    ``early_stop_min_delta`` dB, once the deformation stage has run for
+    ``early_stop_min_deform_fraction`` of its steps (before that only the best is tracked).
+    """
+
+    def __init__(self, frames: list[dict], names: list[str], source: str, *, patience: int = 3,
+                 min_delta: float = 0.05, every_fraction: float = 0.05, min_deform_fraction: float = 0.25):
+        self.frames = frames          # view tensors with "image" [1,H,W,3]
+        self.names = names
+        self.source = source          # "eval" | "train"
+        self.patience = max(1, int(patience))
+        self.min_delta = float(min_delta)
+        self.every_fraction = float(every_fraction)
+        self.min_deform_fraction = float(min_deform_fraction)
+        self.history: list[dict] = []
+        self.stopped_at: dict | None = None
+        self.eval_seconds = 0.0
+        self._next = 0
+        self._best = -math.inf
+        self._bad = 0
+
+    @classmethod
+    def for_trainer(cls, trainer: "Trainer") -> "EarlyStop":
+        cfg, cap = trainer.cfg, trainer.capture
+        n = max(1, int(cfg.early_stop_proxy_frames))
+        evals = sorted(getattr(cap, "eval_frames", None) or [], key=lambda f: (f.camera, f.time))
+        frames, names = [], []
+        if evals:
+            source = "eval"
+            idx = np.linspace(0, len(evals) - 1, min(n, len(evals))).round().astype(int)
+            for i in sorted(set(idx.tolist())):
+                f = evals[i]
+                vt = view_tensors(cap.view(f), trainer.device)
+                img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
+                vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(trainer.device)[None]
+                frames.append(vt)
+                names.append(str(f.path))
+        else:
+            source = "train"
+            order = sorted(range(len(trainer.items)), key=lambda i: (trainer.items[i]["time"], i))
+            idx = np.linspace(0, len(order) - 1, min(n, len(order))).round().astype(int)
+            for i in sorted(set(idx.tolist())):
+                frames.append(trainer.items[order[i]])
+                names.append(f"train:{trainer.items[order[i]]['camera']}@{trainer.items[order[i]]['time']:.6f}")
+        return cls(frames, names, source, patience=cfg.early_stop_patience, min_delta=cfg.early_stop_min_delta,
+                   every_fraction=cfg.early_stop_every_fraction,
+                   min_deform_fraction=cfg.early_stop_min_deform_fraction)
+
+    def every(self, total_steps: int) -> int:
+        return max(1, int(self.every_fraction * total_steps))
+
+    @torch.no_grad()
+    def score(self, model: Model4D) -> float:
+        from .metrics import psnr_from_mse
+
+        was = model.training
+        model.eval()
+        ps = []
+        for vt in self.frames:
+            rgb = model.render(vt, render_depth=False)[0]
+            ps.append(psnr_from_mse(float(((rgb.clamp(0, 1) - vt["image"]) ** 2).mean())))
+        model.train(was)
+        return float(np.mean(ps)) if ps else float("nan")
+
+    def update(self, trainer: "Trainer", done: int) -> bool:
+        """After ``done`` completed steps: evaluate when due; True when training should stop."""
+        if self.stopped_at is not None:
+            return True
+        if done < self._next:
+            return False
+        total = trainer.total_steps
+        self._next = done + self.every(total)
+        s0 = trainer.static_steps
+        deform_done = (done - s0) / max(1, total - s0)
+        t0 = time.perf_counter()
+        score = self.score(trainer.model)
+        self.eval_seconds += time.perf_counter() - t0
+        self.history.append({"step": done, "proxy_psnr": round(score, 4)})
+        if trainer.stage_of(done - 1) != "deform" or deform_done < self.min_deform_fraction:
+            self._best = max(self._best, score)
+            return False
+        if score > self._best + self.min_delta:
+            self._best, self._bad = score, 0
+            return False
+        self._bad += 1
+        if self._bad < self.patience:
+            return False
+        self.stopped_at = {"step": done, "total_steps": total, "proxy_psnr": round(score, 4),
+                           "best_proxy_psnr": round(self._best, 4), "proxy": self.source}
+        return True
+
+    def state_dict(self) -> dict:
+        return {"history": list(self.history), "stopped_at": self.stopped_at, "eval_seconds": self.eval_seconds,
+                "next": self._next, "best": self._best, "bad": self._bad}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.history = list(state.get("history", []))
+        self.stopped_at = state.get("stopped_at")
+        self.eval_seconds = float(state.get("eval_seconds", 0.0))
+        self._next = int(state.get("next", 0))
+        self._best = float(state.get("best", -math.inf))
+        self._bad = int(state.get("bad", 0))
+
+    def summary(self) -> dict:
+        return {"proxy": self.source, "frames": list(self.names), "evaluations": len(self.history),
+                "eval_seconds": round(self.eval_seconds, 3), "stopped_at": self.stopped_at,
+                "history": list(self.history)}
+
+
+def frustum_cull_mask(trainer: "Trainer", margin_px: float = 0.0, times=None) -> torch.Tensor:
+    """bool [N]: Gaussians invisible (radius 0: behind, beyond the image box, or below 1/255
+    opacity) in every train view, at the canonical positions and -- once the deformation
+    field exists -- at ``times`` (default: the train frame times) as well."""
+    from .raster.projection import project_gaussians
+
+    model = trainer.model
+    g = model.gaussians
+    views = {}
+    for it in trainer.items:
+        key = tuple(np.round(it["viewmat"][0].cpu().numpy().ravel(), 6)) + (it["width"], it["height"])
+        views.setdefault(key, it)
+    with torch.no_grad():
+        positions = [g.means.detach()]
+        if model.deformation is not None and model.use_deformation:
+            for t in (times if times is not None else trainer.frame_times):
+                d = model.deformation(g.means, g.quats, g.log_scales, g.opacity_logits, float(t))
+                positions.append(d["means"].detach())
+        visible = torch.zeros(g.num_gaussians, dtype=torch.bool, device=g.means.device)
+        scales = torch.exp(g.log_scales.detach())
+        opac = torch.sigmoid(g.opacity_logits.detach())
+        for it in views.values():
+            w, h = it["width"] + 2 * margin_px, it["height"] + 2 * margin_px
+            K = it["K"].clone()
+            K[:, 0, 2] += margin_px
+            K[:, 1, 2] += margin_px
+            for pos in positions:
+                proj = project_gaussians(pos, g.quats.detach(), scales, opac, it["viewmat"], K, int(w), int(h))
+                visible |= proj.radii[0] > 0
+    return ~visible
+
+
+class FrustumCuller:
+    """Prune Gaussians outside every train frustum (:func:`frustum_cull_mask`). The trainer
+    calls it after the first step, after the first deformation step and right after each
+    densification (whose statistics were just reset, so pruning then does not disturb them);
+    never below ``min_keep`` Gaussians."""
+
+    EVENTS_KEEP = 50
+
+    def __init__(self, min_keep: int = 16):
+        self.min_keep = int(min_keep)
+        self.pruned = 0
+        self.events: list[dict] = []
+
+    def __call__(self, trainer: "Trainer", step: int) -> int:
+        g = trainer.model.gaussians
+        mask = frustum_cull_mask(trainer)
+        n = int(mask.sum())
+        if not n or g.num_gaussians - n < self.min_keep:
+            return 0
+        g.prune(mask)
+        if trainer.freeze is None:
+            trainer.model.static_mask = None
+        self.pruned += n
+        self.events.append({"step": int(step), "pruned": n, "left": g.num_gaussians})
+        del self.events[:-self.EVENTS_KEEP]
+        return n
+
+    def state_dict(self) -> dict:
+        return {"pruned": self.pruned, "events": list(self.events)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.pruned = int(state.get("pruned", 0))
+        self.events = list(state.get("events", []))
+
+    def summary(self) -> dict:
+        return {"pruned": self.pruned, "events": list(self.events)}
 
 
 # ---------------------------------------------------------------------------------- budget
@@ -473,13 +721,18 @@ def _measure_step_seconds(trainer: Trainer, n_static: int = 4, n_deform: int = 4
     """Median seconds per step in each stage, from throw-away steps on a copy of the model."""
     probe = copy.copy(trainer)
     probe.model = copy.deepcopy(trainer.model)
+    vars(probe.model.gaussians).pop("_replace", None)  # the freezer's watch belongs to the real model
     probe.model.gaussians.setup_optimizer(trainer.cfg, trainer.extent)
     probe.deform_opt = None
+    probe.freeze = probe.early_stop = probe.cull = None
     probe.total_steps = 10 ** 6
     times = {}
     for stage, n in (("static", n_static), ("deform", n_deform)):
         probe.cfg = copy.copy(trainer.cfg)
         probe.cfg.static_fraction = 1.0 if stage == "static" else 0.0
+        # the whole capture time admitted: a step at the curriculum's start would skip the
+        # spike branch's in-between render (engine.instants), and under-price every later step
+        probe.cfg.time_curriculum = 0.0
         probe.cfg.densify_from = probe.cfg.densify_until = 2.0  # no densification in the probe
         times[stage] = []
         for i in range(n):
@@ -495,6 +748,40 @@ def steps_for_budget(seconds: float, t_static: float, t_deform: float, cfg: Trai
     """Steps that fit in ``seconds`` given per-step costs (Gaussian growth factored in)."""
     per = (cfg.static_fraction * t_static + (1 - cfg.static_fraction) * t_deform) * growth
     return max(20, int((max(0.0, seconds - reserve_s)) / max(per, 1e-4)))
+
+
+REESTIMATE_FRACTION = 0.05  # re-estimate the budget's step count after this share of the probe's estimate
+
+
+def reestimate_at(total_steps: int) -> int:
+    """Completed steps after which a budget run re-estimates its step count (>= 6, so that
+    the rate excludes the first step and still averages a few)."""
+    return max(6, int(math.ceil(REESTIMATE_FRACTION * total_steps)))
+
+
+def reestimate_steps(trainer: Trainer, done: int, step_seconds: float, probe: dict, loop_seconds: float) -> dict:
+    """The budget's step count from the measured seconds per (static) step of the real run.
+
+    ``probe``: the up-front estimate (``static_step_s``, ``deform_step_s``); the deformation
+    steps are scaled by the same factor as the static ones. Only while the run is still in
+    the static stage (the schedules are fractions of the total): the new total is clamped so
+    that the next step stays static. Returns the record for run.json (``total_steps`` is the
+    new total, or the old one with ``skipped``)."""
+    cfg = trainer.cfg
+    old = trainer.total_steps
+    scale = step_seconds / max(probe["static_step_s"], 1e-9)
+    rec = {"at_step": int(done), "static_step_s": round(step_seconds, 5),
+           "deform_step_s": round(probe["deform_step_s"] * scale, 5), "total_steps": old}
+    if cfg.static_fraction <= 0 or done >= trainer.static_steps:
+        rec["skipped"] = "the deformation stage has started (its schedule is a fraction of the total)"
+        return rec
+    new = steps_for_budget(loop_seconds, step_seconds, probe["deform_step_s"] * scale, cfg)
+    new = max(new, done + 1)
+    while int(round(cfg.static_fraction * new)) <= done:  # keep the next step in the static stage
+        new += 1
+        rec["clamped"] = True
+    rec["total_steps"] = int(new)
+    return rec
 
 
 # ---------------------------------------------------------------------------------- train()
@@ -548,22 +835,34 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             start_step = trainer.load_state(state)
             prior_seconds = float(state.get("train_seconds", 0.0))
             resumed = True
+    budget_estimates = None
     if not resumed:
         trainer.init_model()
         if seconds is not None:
             t_s, t_d = _measure_step_seconds(trainer)
             elapsed = time.perf_counter() - t_start
             trainer.total_steps = steps_for_budget(seconds, t_s, t_d, cfg, reserve_s=elapsed + 1.0)
+            budget_estimates = {"probe": {"static_step_s": round(t_s, 5), "deform_step_s": round(t_d, 5),
+                                          "total_steps": trainer.total_steps}, "measured": None}
     total = trainer.total_steps
     budget_end = (t_start + float(seconds)) if seconds is not None else None
+    skip_notes = {}
+    if trainer.early_stop is not None:
+        es = trainer.early_stop
+        skip_notes["early_stop_proxy"] = {"source": es.source, "frames": list(es.names)}
+        if es.source == "train":
+            skip_notes["early_stop_proxy"]["note"] = ("the capture has no eval frames: the proxy is train frames "
+                                                      "(it measures fit, not generalisation)")
 
     run_info = {
         "capture": cap_path, "preset": preset, "config": cfg.to_dict(), "overrides": overrides or {},
         "seed": seed, "rgb_only": rgb_only, "device": str(dev), "status": "running", "step": start_step,
         "total_steps": total, "train_seconds": prior_seconds, "created": _now(), "time_range": list(trainer.time_range),
         "init": trainer.init_info, "seconds_budget": seconds, "resumed_from": start_step if resumed else None,
-        "host": platform.node(),
+        "host": platform.node(), **skip_notes,
     }
+    if budget_estimates is not None:
+        run_info["budget_estimates"] = budget_estimates
     if resumed:
         old = {}
         try:
@@ -583,12 +882,16 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
 
     status = "finished"
     stopped_by_budget = False
+    early = trainer.early_stop
+    stopped_early = early.stopped_at if early is not None else None  # a resumed run that had stopped
     loop_t0 = time.perf_counter()
     last_ckpt = loop_t0
     step = start_step
+    t_first = None  # after the first step of this call (the re-estimate's rate excludes it)
+    reestimate_step = reestimate_at(total) if budget_estimates is not None else None
     out = {"loss": float("nan"), "psnr": float("nan")}
     try:
-        while step < total:
+        while step < total and stopped_early is None:
             if cancel is not None and cancel.is_set():
                 status = "cancelled"
                 break
@@ -597,7 +900,20 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                 break
             out = trainer.step(step)
             step += 1
+            if early is not None and early.update(trainer, step):
+                stopped_early = early.stopped_at
             now = time.perf_counter()
+            if t_first is None:
+                t_first = now
+            if step == reestimate_step:
+                rec = reestimate_steps(trainer, step, (now - t_first) / max(1, step - 1), budget_estimates["probe"],
+                                       budget_end - loop_t0 - 1.0)
+                budget_estimates["measured"] = rec
+                if rec["total_steps"] != total:
+                    total = trainer.total_steps = rec["total_steps"]
+                    if early is not None:
+                        early._next = min(early._next, step + early.every(total))
+                update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
             if progress is not None:
                 el = now - loop_t0
                 rate = el / max(1, step - start_step)
@@ -615,14 +931,19 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         raise
     train_seconds = prior_seconds + time.perf_counter() - t_start
     snapshot(step, status, train_seconds)
+    skips = trainer.skip_summary()
     summary = {
         "status": status, "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
         "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),
         "preset": preset, "loss": out.get("loss"), "psnr": out.get("psnr"), "init": trainer.init_info,
         "stopped_by_budget": stopped_by_budget, "resumed_from": start_step if resumed else None,
+        "stopped_early": stopped_early, "skips": skips,
     }
-    update_run_json(run_dir, status=status, step=step, train_seconds=train_seconds,
-                    num_gaussians=summary["num_gaussians"], stopped_by_budget=stopped_by_budget, finished=_now())
+    if budget_estimates is not None:
+        summary["budget_estimates"] = budget_estimates
+    update_run_json(run_dir, status=status, step=step, total_steps=total, train_seconds=train_seconds,
+                    num_gaussians=summary["num_gaussians"], stopped_by_budget=stopped_by_budget,
+                    stopped_early=stopped_early, skips=skips, finished=_now())
     return summary
 
 

@@ -1,7 +1,9 @@
 """``bpy.ops.bt4d.reconstruct()`` and ``bpy.ops.bt4d.cancel_reconstruction()``.
 
 Reconstructs the imported capture (``scene.bt4d.capture_dir``) with the scene's settings
-(preset, time budget, output folder, device, spikes on/off, resume vs restart):
+(preset, time budget, output folder, device, spikes on/off, resume vs restart, and the
+advanced switches "Freeze Static Gaussians" / "Stop Early", passed as the training
+overrides ``freeze_static`` / ``early_stop``):
 
 * interactive Blender: ``engine.train.train`` runs in a worker thread
   (``bt4d_addon/worker.py``: it never touches bpy); a ``bpy.app.timers`` callback drains
@@ -54,6 +56,16 @@ def resolve_run_dir(scene) -> str:
     else:
         base = Path(bpy.path.abspath(out))
     return str((base / capture_name(scene)).resolve())
+
+
+def skip_overrides(settings) -> dict:
+    """The advanced switches of ``scene.bt4d`` as training overrides (only those turned on)."""
+    out = {}
+    if getattr(settings, "freeze_static", False):
+        out["freeze_static"] = True
+    if getattr(settings, "early_stop", False):
+        out["early_stop"] = True
+    return out
 
 
 def _num(v, default=0.0):
@@ -129,6 +141,9 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
         return "ERROR", r.message
     apply_metrics(scene, res.get("metrics"), summary)
     msgs = []
+    if summary.get("stopped_early"):
+        se = summary["stopped_early"]
+        msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} (held-out PSNR no longer improving)")
     if res.get("metrics_error"):
         msgs.append(f"evaluation failed: {res['metrics_error']}")
     if res.get("samples") is not None:
@@ -243,9 +258,11 @@ class BT4D_OT_reconstruct(Operator):
         run_dir = resolve_run_dir(scene)
         resume = r.resume if self.use_scene_resume else self.resume
         seconds = float(self.seconds if self.seconds >= 0 else s.seconds)
-        overrides = None
+        overrides = skip_overrides(s)
         if self.iterations > 0:
-            seconds, overrides = None, {"iterations": int(self.iterations)}
+            seconds = None
+            overrides["iterations"] = int(self.iterations)
+        overrides = overrides or None
         job = worker.Job(worker.reconstruct_job, kind=KIND, capture_path=capture, run_dir=run_dir,
                          preset=s.preset, seconds=seconds if seconds and seconds > 0 else None,
                          rgb_only=not s.use_spikes, resume=resume, device=s.device, overrides=overrides,

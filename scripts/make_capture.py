@@ -50,6 +50,10 @@ PRESETS = {
     # a heavier benchmark-like capture
     "large": dict(seconds=0.5, rgb_size=(320, 240), spike_size=(160, 120), eval_fps=300.0,
                   samples=32, light_hz=2000.0),
+    # fast motion (3x the demo's speeds: about 1 rad of swing phase and 2.5 rad of cube spin per
+    # RGB frame), longer and larger than the demo: the spike-guidance benchmark scene
+    "fast": dict(seconds=0.3, rgb_size=(192, 144), spike_size=(96, 72), eval_fps=300.0,
+                 samples=16, light_hz=2000.0, speed=3.0),
 }
 RGB_FPS = 30.0
 SPIKE_HZ = 20000.0
@@ -69,8 +73,10 @@ PHOTONS_PER_THRESHOLD = 1000.0  # Poisson shot noise on each frame's charge
 
 # ----------------------------------------------------------------------------- motion
 
-def object_poses(t: float) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
-    """World location and XYZ Euler rotation (radians) of each moving object at time t (s)."""
+def object_poses(t: float, speed: float = 1.0) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """World location and XYZ Euler rotation (radians) of each moving object at time t (s);
+    ``speed`` scales every motion (the paths stay the same, traversed ``speed`` times faster)."""
+    t = t * speed
     ball_x = 1.6 * math.sin(10.0 * t - 1.1)  # peak 16 m/s ~ 16 px per 30 FPS frame at 160 px
     return {
         "cube": ((-0.75, 0.5, 0.95 + 0.15 * math.sin(9.0 * t)), (0.35, 25.0 * t, 0.6 + 18.0 * t)),
@@ -238,8 +244,8 @@ def build_scene(samples: int, seed: int) -> tuple[bpy.types.Scene, dict]:
     return scene, objs
 
 
-def set_time(objs: dict, t: float) -> None:
-    for name, (loc, rot) in object_poses(t).items():
+def set_time(objs: dict, t: float, speed: float = 1.0) -> None:
+    for name, (loc, rot) in object_poses(t, speed).items():
         objs[name].location = loc
         objs[name].rotation_euler = rot
 
@@ -282,19 +288,45 @@ def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
         raise RuntimeError(f"Cycles did not write {path}")
 
 
+def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"), stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The scene points seen by each pixel (every ``stride``-th) of the stereo pair at the
+    current time, coloured from that camera's rendered frame 0: what a dense two-view
+    pointmap (DUSt3R, which the paper uses and we cannot run offline) estimates, here exact.
+    Pixel rays follow the OpenCV pinhole model of ``engine.cameras`` (x right, y down, z forward)."""
+    from engine.images import read_image
+
+    bpy.context.view_layer.update()
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    xyz, rgb = [], []
+    for name in names:
+        cam = cams[name]
+        k, c2w = cam["intr"], np.asarray(cam["c2w"], dtype=np.float64)  # OpenGL camera-to-world
+        img = read_image(out / f"rgb/{name}/000000.png")[..., :3]
+        origin = c2w[:3, 3]
+        for v in range(stride // 2, k.height, stride):
+            for u in range(stride // 2, k.width, stride):
+                d_cv = np.array([(u + 0.5 - k.cx) / k.fx, (v + 0.5 - k.cy) / k.fy, 1.0])
+                d = c2w[:3, :3] @ (d_cv * np.array([1.0, -1.0, -1.0]))  # OpenCV -> OpenGL camera axes
+                hit, loc, *_ = scene.ray_cast(depsgraph, origin.tolist(), (d / np.linalg.norm(d)).tolist())
+                if hit:
+                    xyz.append(tuple(loc))
+                    rgb.append(img[v, u])
+    return np.asarray(xyz, np.float32), np.clip(np.asarray(rgb, np.float32), 0.0, 1.0)
+
+
 def frame_times(seconds: float, fps: float) -> np.ndarray:
     n = int(math.floor(seconds * fps + 1e-6)) + 1
     return np.arange(n) / fps
 
 
-def render_light(scene, objs, cam, times, work: Path, log) -> np.ndarray:
+def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -> np.ndarray:
     """Linear Rec.709 luminance at the spike camera for each time: (T, H, W) float32."""
     from engine.colour import luminance
     from engine.images import read_image
 
     out = np.empty((len(times), cam["intr"].height, cam["intr"].width), np.float32)
     for i, t in enumerate(times):
-        set_time(objs, float(t))
+        set_time(objs, float(t), speed)
         p = work / f"light_{i:06d}.exr"
         render_to(scene, cam, p, "EXR")
         out[i] = luminance(read_image(p)[..., :3])
@@ -302,6 +334,16 @@ def render_light(scene, objs, cam, times, work: Path, log) -> np.ndarray:
         if i % 50 == 0:
             log(f"  light {i + 1}/{len(times)}")
     return out
+
+
+def write_pointmap(scene, objs, cams, out: Path, cfg: dict) -> Path:
+    from engine.capture import write_points
+
+    set_time(objs, 0.0, cfg["speed"])
+    xyz, rgb = stereo_pointmap(scene, cams, out)
+    path = write_points(out / "points.ply", xyz, rgb)
+    print(f"points: {len(xyz)} from the rgb0/rgb1 pointmap at t=0 -> {path}", flush=True)
+    return path
 
 
 def main(argv=None) -> int:
@@ -314,12 +356,18 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-fps", type=float)
     ap.add_argument("--light-hz", type=float, help="rate at which linear light is rendered for the spike simulation")
     ap.add_argument("--samples", type=int, help="Cycles samples per pixel")
+    ap.add_argument("--speed", type=float, help="motion speed multiplier (1: the demo's motion)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--light-cache", type=Path, help="npz to reuse / store the rendered spike light")
+    ap.add_argument("--points", action="store_true",
+                    help="also write points.ply: the stereo pair's exact pointmap at t=0 (a perfect DUSt3R stand-in)")
+    ap.add_argument("--points-only", action="store_true",
+                    help="only (re)write points.ply into an existing capture made with the same options")
     args = ap.parse_args(argv)
 
     cfg = dict(PRESETS[args.preset])
-    for key in ("seconds", "eval_fps", "light_hz", "samples"):
+    cfg.setdefault("speed", 1.0)
+    for key in ("seconds", "eval_fps", "light_hz", "samples", "speed"):
         if getattr(args, key) is not None:
             cfg[key] = getattr(args, key)
     for key in ("rgb_size", "spike_size"):
@@ -328,10 +376,19 @@ def main(argv=None) -> int:
             cfg[key] = (int(w), int(h))
     if cfg["seconds"] <= 0:
         ap.error("--seconds must be > 0")
+    if cfg["speed"] <= 0:
+        ap.error("--speed must be > 0")
     if (cfg["spike_size"][0] * cfg["spike_size"][1]) % 8:
         ap.error("--spike-size: width * height must be a multiple of 8 (Vidar frames are whole bytes)")
 
     out: Path = args.out.resolve()
+    if args.points_only:
+        if not (out / "rgb/rgb0/000000.png").exists():
+            ap.error(f"--points-only: {out} has no rgb/rgb0/000000.png; generate the capture first")
+        scene, objs = build_scene(cfg["samples"], args.seed)
+        cams = rig(cfg["rgb_size"], cfg["spike_size"], scene)
+        write_pointmap(scene, objs, cams, out, cfg)
+        return 0
     if out.exists() and any(out.iterdir()) and not (out / "transforms.json").exists():
         ap.error(f"{out} exists, is not empty and is not a capture; refusing to overwrite")
     for sub in ("rgb", "eval", "spike"):
@@ -355,7 +412,7 @@ def main(argv=None) -> int:
     frames, eval_frames = [], []
     rgb_times = frame_times(cfg["seconds"], RGB_FPS)
     for i, t in enumerate(rgb_times):
-        set_time(objs, float(t))
+        set_time(objs, float(t), cfg["speed"])
         for name in ("rgb0", "rgb1"):
             rel = f"rgb/{name}/{i:06d}.png"
             render_to(scene, cams[name], out / rel, "PNG")
@@ -363,7 +420,7 @@ def main(argv=None) -> int:
     log(f"rgb: {len(rgb_times)} frames x 2 cameras")
     eval_times = frame_times(cfg["seconds"], cfg["eval_fps"])
     for i, t in enumerate(eval_times):
-        set_time(objs, float(t))
+        set_time(objs, float(t), cfg["speed"])
         rel = f"eval/eval0/{i:06d}.png"
         render_to(scene, cams["eval0"], out / rel, "PNG")
         eval_frames.append(record("eval0", rel, t))
@@ -384,7 +441,7 @@ def main(argv=None) -> int:
                 log(f"light: reused {args.light_cache}")
     if light is None:
         with tempfile.TemporaryDirectory(prefix="bt4d_light_") as work:
-            light = render_light(scene, objs, spike_cam, light_times, Path(work), log)
+            light = render_light(scene, objs, spike_cam, light_times, Path(work), log, cfg["speed"])
         if args.light_cache:
             np.savez_compressed(args.light_cache, light=light, key=np.array(key))
         log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
@@ -410,7 +467,7 @@ def main(argv=None) -> int:
     transforms = {
         "version": 1,
         "generator": {"script": "scripts/make_capture.py", "preset": args.preset, "seed": args.seed,
-                      "samples": cfg["samples"], "light_hz": cfg["light_hz"]},
+                      "samples": cfg["samples"], "light_hz": cfg["light_hz"], "speed": cfg["speed"]},
         "cameras": {name: cam_record(name) for name in ("rgb0", "rgb1", "spike0", "eval0")},
         "frames": frames,
         "eval_frames": eval_frames,
@@ -423,6 +480,8 @@ def main(argv=None) -> int:
                     "shot_noise": True, "photons_per_threshold": PHOTONS_PER_THRESHOLD},
         }],
     }
+    if args.points:
+        write_pointmap(scene, objs, cams, out, cfg)
     (out / "transforms.json").write_text(json.dumps(transforms, indent=1))
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     log(f"wrote {out} ({size / 1e6:.2f} MB)")

@@ -148,23 +148,56 @@ def test_cli_rejects_unknown_variant(tmp_path, capsys):
     assert rc == 2 and "unknown variant" in capsys.readouterr().out
 
 
-def test_early_stopper_cancels_after_patience(monkeypatch):
-    import threading
-    from types import SimpleNamespace
+def test_skip_variants_are_trainer_switches(tmp_path, capture):
+    """freeze / early_stop / cull reach the trainer as its config switches (overrides), and
+    what the trainer reports about them (summary["skips"]) lands in the bench results."""
+    seen = {}
 
-    scores = iter([10.0, 12.0, 12.5, 12.52, 12.4, 12.51, 12.3, 20.0])
-    monkeypatch.setattr(bench, "score_model", lambda *a, **k: {"psnr": next(scores)})
-    stopper = bench.EarlyStopper(capture=None, frames=[], every_fraction=0.1, patience=3, min_delta=0.05,
-                                 min_deform_fraction=0.0)
-    tr = SimpleNamespace(model=object(), static_steps=0)
-    cancel = threading.Event()
-    for step in range(1, 101):
-        stopper({"step": step, "total_steps": 100, "stage": "deform", "elapsed_s": step * 0.1}, tr, cancel)
-        if cancel.is_set():
-            break
-    # evaluations at steps 1, 11, 21, ...: 10, 12, 12.5 improve; 12.52, 12.4, 12.51 do not (< +0.05)
-    assert cancel.is_set() and stopper.stopped_at["step"] == 51
-    assert stopper.stopped_at["best_proxy_psnr"] == 12.5 and len(stopper.history) == 6
+    def recording_train(capture, out_dir, **kw):
+        seen[Path(out_dir).name] = (dict(kw["overrides"]), kw["rgb_only"])
+        s = stub_train(capture, out_dir, **kw)
+        ov = kw["overrides"]
+        s["skips"] = {}
+        if ov.get("early_stop"):
+            s["skips"]["early_stop"] = {"proxy": "eval", "frames": [str(capture.eval_frames[0].path)],
+                                        "stopped_at": {"step": 6, "total_steps": 9}, "history": []}
+        if ov.get("cull_frustum"):
+            s["skips"]["cull"] = {"pruned": 7, "events": []}
+        if ov.get("freeze_static"):
+            s["skips"]["freeze"] = {"fraction_frozen": 0.5, "woken": 2, "checks": 3}
+        return s
+
+    res = bench.run_bench(capture, tmp_path / "b", presets=("fast",), variants=bench.VARIANTS, seconds=5,
+                          eval_every_s=1, overrides={"max_gaussians": 500}, micro=False, progress=False,
+                          train_fn=recording_train, flicker=False, log=None)
+    assert seen["fast-freeze"][0]["freeze_static"] is True and seen["fast-cull"][0]["cull_frustum"] is True
+    assert seen["fast-early_stop"][0]["early_stop"] is True and seen["fast-early_stop"][0]["early_stop_proxy_frames"] == 4
+    assert not any(k in seen["fast-full"][0] for k in ("freeze_static", "early_stop", "cull_frustum"))
+    assert seen["fast-rgb_only"][1] is True and all(ov["max_gaussians"] == 500 for ov, _ in seen.values())
+    by = {r.variant: r for r in res["results"]}
+    assert by["cull"].extra["cull"]["pruned"] == 7 and by["freeze"].extra["freeze"]["woken"] == 2
+    # the proxy frame is scored separately
+    assert np.isfinite(by["early_stop"].final["psnr_excl_proxy"]) and "psnr_excl_proxy" not in by["full"].final
+    md = res["markdown"]
+    assert "stopped at 6/9" in md and "culled 7" in md and "frozen 50% at end, woken 2" in md
+
+
+def test_skip_variants_with_the_real_trainer(tmp_path, capture):
+    ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
+          "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,
+          "freeze_motion_eps_px": 100.0, "early_stop_min_deform_fraction": 0.0, "early_stop_patience": 1,
+          "early_stop_min_delta": 100.0}
+    for variant in ("freeze", "early_stop", "cull"):
+        r = bench.run_one(capture, tmp_path, "fast", variant, seconds=None, eval_every_s=100.0, overrides=ov,
+                          flicker=False, evaluate_fn=lambda run, cap: {"psnr": 0.0})
+        assert r.summary["status"] == "finished", r.summary
+        if variant == "freeze":
+            assert r.extra["freeze"]["checks"] > 0 and r.extra["freeze"]["fraction_frozen"] > 0
+        elif variant == "early_stop":  # a gain of 100 dB never comes: stops at the first deformation evaluation
+            assert r.summary["stopped_early"] and r.summary["step"] < 10
+            assert "psnr_excl_proxy" in r.final
+        else:
+            assert "pruned" in r.extra["cull"]
 
 
 def test_micro_freeze_step_on_a_run_with_a_frozen_mask(tmp_path, capture):

@@ -181,7 +181,7 @@ def test_static_flicker_zero_for_constant_positive_for_noise_and_ignores_motion(
 
 
 def _fake_trainer(n=40):
-    """What FreezeHook reads from engine.train.Trainer: model, static_steps, total_steps,
+    """What TrainFreezer reads from engine.train.Trainer: model, static_steps, total_steps,
     frame_times and items (view tensors with a camera name)."""
     from types import SimpleNamespace
 
@@ -202,31 +202,38 @@ def _fake_trainer(n=40):
     return SimpleNamespace(model=model, static_steps=0, total_steps=100, frame_times=[0.0, 0.5, 1.0], items=[item])
 
 
-def test_freeze_hook_freezes_static_field_follows_prune_and_wakes():
-    from types import SimpleNamespace
-
-    from engine.freezing import FreezeHook
+def test_train_freezer_freezes_static_field_follows_prune_wakes_and_checkpoints():
+    from engine.freezing import TrainFreezer
 
     tr = _fake_trainer()
-    hook = FreezeHook(k_checks=2, check_every=1, start_fraction=0.0, wake_residual=0.5)
-    (term,) = hook(tr)
-    assert term.stages == ("deform",)
+    fz = TrainFreezer(tr, k_checks=2, check_every=1, start_fraction=0.0, wake_residual=0.5)
+    assert fz.schedule() == (0, 1)
     g = tr.model.gaussians
 
     def step(i, image=None):
         rgb, alpha, meta, attrs = tr.model.render(tr.items[0])
         item = dict(tr.items[0], image=rgb.detach() if image is None else image)
-        return term.fn(SimpleNamespace(trainer=tr, step=i, stage="deform", item=item, rgb=rgb, alpha=alpha,
-                                       meta=meta, attrs=attrs))
+        fz.after_step(i, item, rgb, meta)
+        return fz.maybe_check(i)
 
-    assert step(0) is None and tr.model.static_mask is None        # 1 quiet check: nothing frozen yet
+    assert step(0)["frozen"] == 0 and tr.model.static_mask is None   # 1 quiet check: nothing frozen yet
     step(1)
     assert tr.model.static_mask is not None and bool(tr.model.static_mask.all())  # identity field: all static
-    assert hook.summary()["fraction_frozen"] == 1.0
-    g.prune(torch.arange(g.num_gaussians) < 5)                      # densification bookkeeping
-    assert hook.freezer.num_gaussians == g.num_gaussians == 35
+    assert fz.summary()["fraction_frozen"] == 1.0 and fz.summary()["checks"] == 2
+    keep = torch.arange(g.num_gaussians) >= 5
+    g.prune(~keep)                                                   # densification bookkeeping
+    fz.follow(keep, 0)
+    assert fz.freezer.num_gaussians == g.num_gaussians == 35
     assert tr.model.static_mask.shape[0] == 35
+    state = fz.state_dict()
     # a frame whose residual is high everywhere wakes every visible frozen Gaussian
-    step(2, image=torch.ones(1, 24, 32, 3))
-    assert hook.freezer.total_woken > 0
-    assert int(tr.model.static_mask.sum()) < 35 if tr.model.static_mask is not None else True
+    rgb, alpha, meta, attrs = tr.model.render(tr.items[0])
+    fz.after_step(2, dict(tr.items[0], image=torch.ones(1, 24, 32, 3)), rgb, meta)
+    assert fz.woken > 0 and fz.freezer.total_woken == fz.woken
+    assert tr.model.static_mask is None or int(tr.model.static_mask.sum()) < 35
+    # the checkpointed state restores the frozen set
+    other = TrainFreezer(tr, k_checks=2, check_every=1, start_fraction=0.0)
+    other.load_state_dict(state)
+    other.sync_mask()
+    assert other.freezer.num_frozen == 35 and other.summary()["checks"] == 2
+    assert bool(tr.model.static_mask.all())

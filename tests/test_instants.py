@@ -51,3 +51,16 @@ def test_snap_to_spike_grid_and_between_grid():
     assert np.allclose([d.eps for d in g[:9]], np.arange(1, 10) / 10, atol=1e-3)
     with pytest.raises(ValueError):
         InstantSampler(times, margin=0.6)
+
+
+def test_between_instants_follow_the_time_curriculum():
+    s = InstantSampler([0.0, 0.1, 0.2, 0.3], seed=4)
+    assert s.between_instant(max_time=0.0) is None  # nothing admitted yet
+    for _ in range(50):
+        inst = s.between_instant(max_time=0.15)
+        assert inst.interval in (0, 1) and inst.time <= 0.15 + 1e-12
+    seen = {s.between_instant(max_time=0.35).interval for _ in range(60)}
+    assert seen == {0, 1, 2}  # the whole capture once the window has passed it
+    snapped = InstantSampler([0.0, 0.1], seed=1, snap_hz=1000.0)
+    assert snapped.between_instant(max_time=0.0005) is None  # not even one spike frame is open
+    assert snapped.between_instant(max_time=0.02).time <= 0.02 + 1e-3

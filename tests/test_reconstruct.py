@@ -181,3 +181,32 @@ def test_sidebar_draws_every_state(scene):
     r.has_metrics = True
     pr.draw_result(Layout(), ctx)
     pr.draw_bullet_time(Layout(), ctx)
+
+
+def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, tmp_path, monkeypatch):
+    """"Freeze Static Gaussians" / "Stop Early" (scene.bt4d) become the training overrides
+    freeze_static / early_stop; off, nothing is passed."""
+    worker = roundtrip_util.addon_module("bt4d_addon.worker")
+    calls = []
+
+    def fake_job(*, progress, cancel, **kw):
+        calls.append(kw)
+        return {"summary": {"status": "finished", "step": 3, "total_steps": 5,
+                            "stopped_early": {"step": 3, "total_steps": 5}}, "metrics": None, "samples": None,
+                "run_dir": kw["run_dir"]}
+
+    monkeypatch.setattr(worker, "reconstruct_job", fake_job)
+    assert bpy.ops.bt4d.import_capture(directory=str(demo_capture)) == {"FINISHED"}
+    s = bpy.context.scene.bt4d
+    s.output_dir = str(tmp_path)
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"iterations": 5}
+    s.freeze_static = True
+    s.early_stop = True
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"iterations": 5, "freeze_static": True, "early_stop": True}
+    s.freeze_static = False
+    assert bpy.ops.bt4d.reconstruct() == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"early_stop": True} and calls[-1]["seconds"] == s.seconds
+    r = bpy.context.scene.bt4d_run
+    assert r.status == "FINISHED" and "stopped early at step 3/5" in r.message

@@ -22,7 +22,7 @@ class _FakeModel(torch.nn.Module):
         self.deformation = None
         self.use_deformation = False
 
-    def render(self, vt, t=None):
+    def render(self, vt, t=None, **_):
         img = self.level.clamp(0, 1).expand(1, vt["height"], vt["width"], 3)
         return img, None, {}, {}
 
@@ -237,3 +237,35 @@ def test_baseline_training_data_variant(cap, tmp_path):
     import json
     info = json.loads((tmp_path / "rep" / "run.json").read_text())
     assert info["config"]["baseline"] == "repeat"
+
+
+def test_between_instants_follow_the_trainers_time_curriculum(cap):
+    tr = _fake_trainer(cap, between_colocated_p=0.5)
+    g = SpikeGuidance(tr)
+    tr.time_window = lambda step: 0.0  # only the first RGB instant admitted
+    assert all(g.between(_ctx(tr, step=s)) is None for s in range(10, 30))
+    tr.time_window = lambda step: 0.05
+    times = [g.between(_ctx(tr, step=s))["instant"].time for s in range(30, 60)]
+    assert max(times) <= 0.05 + 1e-4 and min(times) > 0.0
+    tr.cfg.between_curriculum = False  # switched off: the whole stream from the first step
+    assert max(g.between(_ctx(tr, step=s))["instant"].time for s in range(60, 120)) > 0.1
+
+
+def test_block_targets_are_pooled_cached_and_close_to_the_exact_instant(cap, monkeypatch):
+    from engine import spike_guidance as sg
+    from engine.interpolation import avg_pool_blocks
+
+    tr = _fake_trainer(cap, block_interp="flow")
+    g = SpikeGuidance(tr)
+    t = 0.05 + 0.3 / 30.0 * 0.5  # inside the second interval
+    first = g.pooled_target("rgb1", t, 4)
+    exact = avg_pool_blocks(g.interpolated("rgb1", t), 4)
+    assert first.shape == (1, 30, 40, 3) and (first - exact).abs().max() < 0.02  # 1/64-interval rounding
+    calls = []
+    monkeypatch.setattr(sg, "flow_interpolate", lambda *a, **k: calls.append(1))
+    assert g.pooled_target("rgb1", t + 1e-5, 4) is first and not calls  # same 1/64 step: no new warp
+    monkeypatch.undo()
+    g.TARGET_CACHE_BYTES = 2 * first.numel() * first.element_size()
+    g.pooled_target("rgb1", 0.01, 4)
+    g.pooled_target("rgb1", 0.012, 4)
+    assert len(g._targets) <= 2  # bounded: least recently used out

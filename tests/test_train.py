@@ -329,3 +329,209 @@ def test_loss_terms_block_and_stereo_depth():
     names = [t.name for t in default_loss_terms(get_preset("fast"))]
     assert names[:3] == ["l1", "dssim", "block_l1"] and "stereo_depth" not in names
     assert "stereo_depth" in [t.name for t in default_loss_terms(get_preset("fast", {"lambda_depth": 0.1}))]
+
+
+# ------------------------------------------------------------------------------- skipping (issue 6)
+FREEZE = {"freeze_static": True, "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 10, "freeze_k_checks": 2}
+# learning rates ~0 and no densification: nothing changes, the proxy PSNR is a plateau
+FROZEN_LRS = {k: 1e-12 for k in ("lr_means", "lr_means_final", "lr_scales", "lr_quats", "lr_opacities", "lr_sh_dc",
+                                 "lr_sh_rest", "lr_grid", "lr_grid_final", "lr_mlp", "lr_mlp_final")}
+
+
+def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_path):
+    ov = {"iterations": 40, "static_fraction": 0.25, "init": "ply", "densify_from": 2.0}
+    off = train(tiny_capture, tmp_path / "off", overrides=ov, rgb_only=True)
+    assert off["skips"] == {} and off["stopped_early"] is None
+    assert load_checkpoint(tmp_path / "off")["model"]["static_mask"] is None
+
+    run = tmp_path / "on"
+    s = train(tiny_capture, run, overrides={**ov, **FREEZE}, rgb_only=True)
+    fz = s["skips"]["freeze"]
+    assert s["status"] == "finished" and s["step"] == 40
+    assert fz["checks"] >= 5 and fz["fraction_frozen"] > 0.2, fz   # the wall does not move
+    assert fz["num_gaussians"] == s["num_gaussians"]
+    mask = load_checkpoint(run)["model"]["static_mask"]
+    assert mask is not None and int(mask.sum()) == fz["frozen"] > 0
+    assert read_run_json(run)["skips"]["freeze"] == fz
+    # the frozen model is still a 4D model whose moving part moves
+    from engine.model import load_run
+
+    scene = load_run(run)
+    a, b = scene.gaussians_at(0.0), scene.gaussians_at(0.06)
+    moved = np.linalg.norm(b["means"] - a["means"], axis=1)
+    assert moved[mask.numpy()].max() == 0.0 and moved.max() > 0
+
+
+def test_early_stop_stops_on_a_plateau_with_eval_or_train_proxy(tiny_capture, tmp_path):
+    ov = {"iterations": 40, "static_fraction": 0.25, "init": "ply", "densify_from": 2.0, "early_stop": True,
+          "early_stop_proxy_frames": 2, **FROZEN_LRS}
+    run = tmp_path / "es"
+    s = train(tiny_capture, run, overrides=ov, rgb_only=True)
+    st = s["stopped_early"]
+    assert s["status"] == "finished" and st is not None and st["proxy"] == "eval"
+    assert s["step"] == st["step"] < s["total_steps"] == 40
+    # evaluations every 2 steps (1, 3, 5, ...); the deformation stage (from step 10) must run
+    # 25% of its 30 steps before 3 evaluations without a gain (19, 21, 23) stop it
+    assert st["step"] == 23, st
+    info = read_run_json(run)
+    assert info["status"] == "finished" and info["stopped_early"] == st and info["step"] == st["step"]
+    assert info["early_stop_proxy"]["source"] == "eval" and len(info["early_stop_proxy"]["frames"]) == 2
+    # resuming a run that stopped early does not train on
+    s2 = train(tiny_capture, run, overrides=ov, rgb_only=True)
+    assert s2["resumed_from"] == st["step"] == s2["step"] and s2["stopped_early"] == st
+    # without the switch the same plateau runs to the end
+    s3 = train(tiny_capture, tmp_path / "off", overrides={**ov, "early_stop": False})
+    assert s3["step"] == 40 and s3["stopped_early"] is None
+
+    # a capture without eval frames: the proxy falls back to train frames (noted in run.json)
+    import shutil
+
+    cap = tmp_path / "no_eval"
+    shutil.copytree(tiny_capture, cap)
+    tj = json.loads((cap / "transforms.json").read_text())
+    tj["eval_frames"] = []
+    tj["cameras"].pop("eval0")
+    (cap / "transforms.json").write_text(json.dumps(tj))
+    s4 = train(cap, tmp_path / "es_train", overrides=ov)
+    assert s4["stopped_early"] is not None and s4["stopped_early"]["proxy"] == "train" and s4["step"] < 40
+    note = read_run_json(tmp_path / "es_train")["early_stop_proxy"]
+    assert note["source"] == "train" and "no eval frames" in note["note"]
+
+
+def test_cull_frustum_prunes_gaussians_behind_every_camera(tiny_capture, tmp_path, monkeypatch):
+    behind = np.array([[0.0, -10.0, 0.0], [0.5, -12.0, 0.3], [-0.4, -9.0, -0.2]], np.float32)  # cameras sit at y=-1.5 facing +y
+    orig = train_mod.initial_points
+
+    def with_behind(*a, **k):
+        pts = orig(*a, **k)
+        pts.xyz = np.concatenate([pts.xyz, behind])
+        pts.rgb = np.concatenate([pts.rgb, np.full((len(behind), 3), 0.5, np.float32)])
+        return pts
+
+    monkeypatch.setattr(train_mod, "initial_points", with_behind)
+    ov = {"iterations": 8, "static_fraction": 0.5, "init": "ply", "densify_from": 2.0}
+    off = train(tiny_capture, tmp_path / "off", overrides=ov, rgb_only=True)
+    s = train(tiny_capture, tmp_path / "on", overrides={**ov, "cull_frustum": True}, rgb_only=True)
+    cull = s["skips"]["cull"]
+    assert cull["pruned"] >= len(behind) and cull["events"][0]["step"] == 0, cull
+    assert s["num_gaussians"] == off["num_gaussians"] - cull["pruned"]
+    means = load_checkpoint(tmp_path / "on")["model"]["gaussians"]["params"]["means"]
+    assert float(means[:, 1].min()) > -5.0          # the ones behind the cameras are gone
+    assert float(load_checkpoint(tmp_path / "off")["model"]["gaussians"]["params"]["means"][:, 1].min()) < -5.0
+
+
+def test_skip_state_survives_cancel_and_resume(tiny_capture, tmp_path):
+    ov = {"iterations": 40, "static_fraction": 0.4, "densify_from": 0.1, "densify_every": 10, "init": "ply",
+          **FREEZE, "early_stop": True, "early_stop_min_deform_fraction": 0.9, "early_stop_every_fraction": 0.1,
+          "early_stop_proxy_frames": 2, "cull_frustum": True}
+    full = tmp_path / "full"
+    s_full = train(tiny_capture, full, overrides=ov, seed=3, rgb_only=True)
+    assert s_full["skips"]["freeze"]["frozen"] > 0  # the freezer had something to carry over
+
+    part = tmp_path / "part"
+    cancel = threading.Event()
+
+    def progress(d):
+        if d["step"] == 19:  # after the checks at steps 16 and 18, before the densification at 20
+            cancel.set()
+
+    s = train(tiny_capture, part, overrides=ov, seed=3, progress=progress, cancel=cancel, rgb_only=True)
+    assert s["status"] == "cancelled" and s["step"] == 19 and s["skips"]["freeze"]["frozen"] > 0
+    s2 = train(tiny_capture, part, overrides=ov, seed=3, rgb_only=True)
+    assert s2["resumed_from"] == 19 and s2["step"] == s_full["step"]
+    a, b = load_checkpoint(full), load_checkpoint(part)
+    for k, v in a["model"]["gaussians"]["params"].items():
+        torch.testing.assert_close(v, b["model"]["gaussians"]["params"][k], atol=1e-5, rtol=1e-4)
+    assert torch.equal(a["model"]["static_mask"], b["model"]["static_mask"])
+    fa, fb = a["skips"]["freeze"], b["skips"]["freeze"]
+    assert torch.equal(fa["freezer"]["frozen"], fb["freezer"]["frozen"])
+    assert torch.equal(fa["freezer"]["streak"], fb["freezer"]["streak"])
+    assert fa["num_checks"] == fb["num_checks"] and fa["woken"] == fb["woken"]
+    ea, eb = a["skips"]["early_stop"], b["skips"]["early_stop"]
+    assert [h["step"] for h in ea["history"]] == [h["step"] for h in eb["history"]]
+    np.testing.assert_allclose([h["proxy_psnr"] for h in ea["history"]], [h["proxy_psnr"] for h in eb["history"]],
+                               atol=1e-3)
+    assert a["skips"]["cull"]["pruned"] == b["skips"]["cull"]["pruned"]
+    assert s2["skips"]["freeze"] == s_full["skips"]["freeze"]
+
+
+def test_seconds_budget_is_re_estimated_from_the_real_steps(tiny_capture, tmp_path, monkeypatch):
+    """The probe sees an idle machine (5 ms/step); the real steps take 50 ms (a loaded one):
+    the re-estimate after ~5% of the run shrinks the schedule so that it fits the budget."""
+    import time as _time
+
+    monkeypatch.setattr(train_mod, "_measure_step_seconds", lambda trainer: (0.005, 0.005))
+
+    def slow_step(self, step):
+        _time.sleep(0.05)
+        return {"loss": 0.0, "psnr": 0.0, "stage": self.stage_of(step), "losses": {}, "densify": {}}
+
+    monkeypatch.setattr(train_mod.Trainer, "step", slow_step)
+    run = tmp_path / "run"
+    s = train(tiny_capture, run, seconds=5.0, overrides={"init": "ply", "static_fraction": 0.9})
+    est = read_run_json(run)["budget_estimates"]
+    probe, measured = est["probe"], est["measured"]
+    assert probe["total_steps"] > 150                         # ~4 s at 7.5 ms a step
+    assert measured["at_step"] == train_mod.reestimate_at(probe["total_steps"])
+    assert measured["static_step_s"] == pytest.approx(0.05, rel=0.5)
+    assert measured["total_steps"] < probe["total_steps"] / 4
+    assert s["total_steps"] == measured["total_steps"] == read_run_json(run)["total_steps"]
+    assert s["status"] == "finished" and s["step"] == s["total_steps"] and not s["stopped_by_budget"]
+    assert s["budget_estimates"] == est
+
+
+def test_budget_re_estimate_keeps_the_schedule_consistent(tiny_capture):
+    from engine.capture import load_capture
+    from engine.train import Trainer, reestimate_steps
+
+    cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
+    tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
+    probe = {"static_step_s": 0.01, "deform_step_s": 0.02}
+    rec = reestimate_steps(tr, 50, 0.1, probe, loop_seconds=10.0)     # 10x slower than probed
+    assert rec["clamped"] and rec["deform_step_s"] == pytest.approx(0.2)
+    tr.total_steps = rec["total_steps"]
+    assert tr.stage_of(50) == "static"                               # the next step stays static
+    rec = reestimate_steps(tr, 50, 0.001, probe, loop_seconds=100.0)  # faster: more steps
+    assert rec["total_steps"] > 1000 and "clamped" not in rec
+    tr.total_steps = 100
+    rec = reestimate_steps(tr, 40, 0.001, probe, loop_seconds=100.0)  # already deforming: no change
+    assert rec["total_steps"] == 100 and "skipped" in rec
+
+
+def test_cli_train_takes_the_skip_switches(tiny_capture, tmp_path, capsys):
+    from engine.__main__ import main
+    from engine.cli.train import parse_overrides
+
+    assert parse_overrides(["early_stop=False", "freeze_static=on", "cull_frustum=true", "iterations=5"]) == \
+        {"early_stop": False, "freeze_static": True, "cull_frustum": True, "iterations": 5}
+    rc = main(["train", str(tiny_capture), "--out", str(tmp_path / "r"), "--quiet", "--rgb-only",
+               "--set", "iterations=6", "--set", "init=ply", "--set", "cull_frustum=true",
+               "--set", "freeze_static=true"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    cfg = read_run_json(tmp_path / "r")["config"]
+    assert cfg["cull_frustum"] and cfg["freeze_static"] and not cfg["early_stop"]
+    assert set(summary["skips"]) == {"freeze", "cull"}
+
+
+def test_budget_probe_prices_the_spike_branchs_in_between_render(demo_capture, monkeypatch):
+    """The deformation probe must admit the whole capture time: at the curriculum's start
+    the spike branch has no in-between instant open, and a probe that never pays for that
+    render sizes a --seconds run far too long (it then ends mid-curriculum)."""
+    from engine.capture import load_capture
+    from engine.model import Model4D
+    from engine.train import Trainer, _measure_step_seconds
+
+    cap = load_capture(demo_capture)
+    tr = Trainer(cap, get_preset("fast", {"init_max_points": 400, "init_random_points": 100}), device="cpu")
+    tr.init_model()
+    widths = []
+    render = Model4D.render
+
+    def counting(self, vt, t=None, **kw):
+        widths.append(int(vt["width"]))
+        return render(self, vt, t, **kw)
+
+    monkeypatch.setattr(Model4D, "render", counting)
+    _measure_step_seconds(tr, n_static=1, n_deform=3)
+    assert widths.count(80) >= 3  # a half-resolution in-between render in every deformation probe step

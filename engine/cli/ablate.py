@@ -12,6 +12,7 @@ rgb-only       coarse DSR + L_frame (the RGB-only 4D Gaussians; Table 3 row 1)
 +fine          + fine-scale spike deformation feature (Table 3 row 2)
 +spike         + spike rendering and L_spike (Table 3 row 3)
 full           + block colour loss: the BulletTime4D objective (Table 3 row 4)
+full-pg        full with per-Gaussian fine features (sampled at each projection)
 rgb+repeat     RGB-only trained on repeated frames (Table 1 "Repeat")
 rgb+interp     RGB-only trained on flow-interpolated frames (Table 1 "Interpolate")
 rgb+spike2img  RGB-only trained on spike TFP images + Reinhard colour (Table 1)
@@ -35,6 +36,8 @@ VARIANTS: dict[str, tuple[bool, dict, str]] = {
               "+ fine spike feature"),
     "+spike": (False, {"fine_deformation": True, "block_loss_weight": 0.0}, "+ spike render & L_spike"),
     "full": (False, {"fine_deformation": True}, "full BulletTime4D"),
+    "full-pg": (False, {"fine_deformation": True, "fine_per_gaussian": True},
+                "full, per-Gaussian fine features"),
     "rgb+repeat": (True, {"baseline": "repeat"}, "RGB-only + Repeat"),
     "rgb+interp": (True, {"baseline": "interp-flow"}, "RGB-only + Interpolate (flow)"),
     "rgb+spike2img": (True, {"baseline": "spike2img"}, "RGB-only + Spike2img + colour"),

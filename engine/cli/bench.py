@@ -18,7 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "variant: compares the time the skip features save)")
     parser.add_argument("--presets", default=None, help="comma-separated presets (default fast,balanced; fast with --quick)")
     parser.add_argument("--variants", default="full,rgb_only",
-                        help="comma-separated: full, rgb_only, freeze, early_stop, cull (default full,rgb_only)")
+                        help="comma-separated: full, rgb_only, freeze, early_stop, cull (default full,rgb_only); "
+                             "freeze / early_stop / cull are the trainer's switches freeze_static / early_stop / "
+                             "cull_frustum (python -m engine train --help)")
     parser.add_argument("--eval-every", type=float, default=None,
                         help="seconds between curve samples (checkpoints; default budget/8)")
     parser.add_argument("--eval-stride", type=int, default=None,
@@ -32,24 +34,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training option override (repeatable), e.g. --set max_gaussians=20000")
 
 
-def _parse_overrides(items) -> dict:
-    import json
-
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise SystemExit(f"error: --set expects KEY=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        try:
-            out[k.strip()] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k.strip()] = v
-    return out
-
-
 def main(args) -> int:
     from ..bench import VARIANTS, run_bench
     from ..errors import CaptureError, RunError
+    from .train import parse_overrides
 
     presets = [p.strip() for p in (args.presets or ("fast" if args.quick else "fast,balanced")).split(",") if p.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -57,7 +45,7 @@ def main(args) -> int:
     if bad:
         print(f"error: unknown variant(s) {', '.join(bad)}; choose from {', '.join(VARIANTS)}")
         return 2
-    overrides = _parse_overrides(args.overrides)
+    overrides = parse_overrides(args.overrides)
     if args.iterations is not None:
         overrides["iterations"] = int(args.iterations)
         seconds = None

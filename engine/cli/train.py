@@ -9,13 +9,20 @@ import threading
 HELP = "train a 4D Gaussian scene on a capture folder"
 
 
+_BOOLS = {"true": True, "yes": True, "on": True, "false": False, "no": False, "off": False}
+
+
 def parse_overrides(items) -> dict:
-    """``key=value`` strings -> dict (values parsed as JSON when possible)."""
+    """``key=value`` strings -> dict (values parsed as JSON when possible; true/false,
+    yes/no, on/off in any case are booleans, so ``--set early_stop=False`` is off)."""
     out = {}
     for item in items or []:
         if "=" not in item:
             raise SystemExit(f"--set expects key=value, got {item!r}")
         k, v = item.split("=", 1)
+        if v.strip().lower() in _BOOLS:
+            out[k.strip()] = _BOOLS[v.strip().lower()]
+            continue
         try:
             out[k.strip()] = json.loads(v)
         except ValueError:
@@ -23,7 +30,25 @@ def parse_overrides(items) -> dict:
     return out
 
 
+SKIP_HELP = """\
+skipping what a scene does not need (all off by default; --set KEY=VALUE, e.g.
+--set freeze_static=true --set early_stop=true):
+  freeze_static=true      freeze Gaussians that do not move (CPOStream): they skip the
+                          deformation field; tune freeze_k_checks, freeze_motion_eps_px,
+                          freeze_wake_residual, freeze_checks_per_stage, freeze_start_fraction
+  early_stop=true         stop when the PSNR on a few held-out eval frames stops improving
+                          (train frames if the capture has none); tune early_stop_patience,
+                          early_stop_min_delta, early_stop_every_fraction,
+                          early_stop_min_deform_fraction, early_stop_proxy_frames
+  cull_frustum=true       prune Gaussians outside every train camera's frustum
+Each field of engine.presets.TrainConfig can be set the same way."""
+
+
 def add_arguments(p) -> None:
+    import argparse
+
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = SKIP_HELP
     p.add_argument("capture", help="capture folder (transforms.json)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, run.json, metrics)")
     p.add_argument("--preset", default="fast", choices=["fast", "balanced", "quality"])
@@ -33,7 +58,7 @@ def add_arguments(p) -> None:
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when available)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
-                   help="override a preset field, e.g. --set iterations=500 (repeatable)")
+                   help="override a preset field, e.g. --set iterations=500 (repeatable; skip switches below)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
