@@ -143,7 +143,8 @@ def _deform_reg(ctx: StepContext):
     cfg = ctx.trainer.cfg
     if d is None or not ctx.trainer.model.use_deformation:
         return None
-    return d.regularization(cfg.tv_weight, cfg.time_smooth_weight, cfg.time_l1_weight)
+    smooth = cfg.spike_time_smooth_weight if ctx.trainer.guided else cfg.time_smooth_weight
+    return d.regularization(cfg.tv_weight, smooth, cfg.time_l1_weight)
 
 
 def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
@@ -359,6 +360,13 @@ class Trainer:
         self._make_deform_opt()
         for hook in self.deformation_hooks:
             hook(self)
+
+    @property
+    def guided(self) -> bool:
+        """:meth:`between_supervised`, computed once per run."""
+        if getattr(self, "_guided", None) is None:
+            self._guided = self.between_supervised()
+        return self._guided
 
     def between_supervised(self) -> bool:
         """True when the spike guidance supervises instants between the RGB frames."""
