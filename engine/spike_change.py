@@ -25,7 +25,7 @@ static regions receive no spike-driven motion (and do not flicker).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -60,6 +60,7 @@ class SpikeChange:
     sigma: float
     block: int
     shape: tuple[int, int]
+    _unions: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def num_intervals(self) -> int:
@@ -91,8 +92,11 @@ class SpikeChange:
         return up[0, 0]
 
     def union_map(self, dilate: int = 1) -> torch.Tensor:
-        """Float [h, w]: 1 where any interval changed (dilated as in :meth:`gate_map`)."""
-        return torch.stack([self.gate_map(k, dilate) for k in range(self.num_intervals)]).amax(0)
+        """Float [h, w]: 1 where any interval changed (dilated as in :meth:`gate_map`); computed
+        once per ``dilate`` (it is sampled at every render)."""
+        if dilate not in self._unions:
+            self._unions[dilate] = torch.stack([self.gate_map(k, dilate) for k in range(self.num_intervals)]).amax(0)
+        return self._unions[dilate]
 
     def gate(self, interval: int | None, grid: torch.Tensor, dilate: int = 1) -> torch.Tensor:
         """Per-point gate [N] in [0, 1]: the (dilated) change map of ``interval`` (None: of

@@ -150,12 +150,7 @@ class SpikeFineEncoder(nn.Module):
         ch = cache.change(int(self.spec.get("change_block", 4)))
         if not bool(ch.changed[int(interval)].any()):
             return grid.new_zeros(grid.shape[0])
-        key = (id(ch), grid.device)
-        if getattr(self, "_union_key", None) != key:
-            self._union = ch.union_map(1).to(grid.device)
-            self._union_key = key
-        g = torch.nn.functional.grid_sample(self._union.to(grid.dtype)[None, None], grid.reshape(1, 1, -1, 2),
-                                            mode="bilinear", padding_mode="zeros", align_corners=False).reshape(-1)
+        g = ch.gate(None, grid, dilate=1)
         return g * visible.to(g.dtype)
 
 
@@ -318,7 +313,6 @@ class SpikeGuidance:
         if cache is None or self.stream is None or self.stream.c2w is None or self.stream.intrinsics is None:
             return None
         change = cache.change(int(opt(self.cfg, "spike_change_block")))
-        union = change.union_map(dilate=2)
         view = self.stream.view(0.0)
         vm = torch.as_tensor(view.viewmat, dtype=torch.float32)
         K = torch.as_tensor(self.stream.intrinsics.K, dtype=torch.float32)
@@ -326,9 +320,7 @@ class SpikeGuidance:
 
         def prior(means: torch.Tensor) -> torch.Tensor:
             grid, vis = project_to_grid(means.float(), vm.to(means.device), K.to(means.device), w, h)
-            g = torch.nn.functional.grid_sample(union.to(means.device)[None, None], grid.reshape(1, 1, -1, 2),
-                                                mode="bilinear", padding_mode="zeros", align_corners=False).reshape(-1)
-            return vis & (g <= 0)
+            return vis & (change.gate(None, grid, dilate=2) <= 0)
 
         return prior
 
