@@ -348,20 +348,28 @@ class SpikeGuidance:
                 _, self._flows[(ia, ib)] = flow_interpolate(items[ia]["image"][0], items[ib]["image"][0], 0.5,
                                                             return_flows=True)
 
-    def interpolated(self, cam: str, t: float) -> torch.Tensor | None:
-        """Interpolated frame [1, H, W, 3] of camera ``cam`` at ``t`` from its RGB frames."""
-        idx = self.by_cam.get(cam, [])
+    def bracket(self, cam: str, t: float) -> tuple[int, int, float, float] | None:
+        """(ia, ib, t1, t2): the trainer items of camera ``cam``'s real RGB frames with
+        ``t1 <= t < t2``, or None outside them."""
         items = self.trainer.items
-        real = [i for i in idx if not items[i].get("synthetic")]
+        real = [i for i in self.by_cam.get(cam, []) if not items[i].get("synthetic")]
         times = [items[i]["time"] for i in real]
         if len(times) < 2:
             return None
         k = int(np.searchsorted(times, t, side="right")) - 1
         if k < 0 or k >= len(times) - 1:
             return None
-        ia, ib = real[k], real[k + 1]
+        return real[k], real[k + 1], times[k], times[k + 1]
+
+    def interpolated(self, cam: str, t: float) -> torch.Tensor | None:
+        """Interpolated frame [1, H, W, 3] of camera ``cam`` at ``t`` from its RGB frames."""
+        br = self.bracket(cam, t)
+        if br is None:
+            return None
+        ia, ib, t1, t2 = br
+        items = self.trainer.items
         a, b = items[ia]["image"][0], items[ib]["image"][0]
-        eps = (t - times[k]) / (times[k + 1] - times[k])
+        eps = (t - t1) / (t2 - t1)
         if opt(self.cfg, "block_interp") == "linear":
             return linear_blend(a, b, eps)[None]
         key = (ia, ib)
@@ -380,21 +388,16 @@ class SpikeGuidance:
         a sub-pixel shift after 4x4 pooling even for fast motion), so the flow warp runs
         once per (camera, instant) instead of every step; the cache keeps the pooled blocks
         only and is bounded (least recently used out)."""
-        idx = self.by_cam.get(cam, [])
-        items = self.trainer.items
-        times = [items[i]["time"] for i in idx if not items[i].get("synthetic")]
-        if len(times) < 2:
+        br = self.bracket(cam, t)
+        if br is None:
             return None
-        j = int(np.searchsorted(times, t, side="right")) - 1
-        if j < 0 or j >= len(times) - 1:
-            return None
-        q = int(round((t - times[j]) / (times[j + 1] - times[j]) * self.TARGET_STEPS))
-        key = (cam, j, q, int(k))
+        ia, _, t1, t2 = br
+        q = int(round((t - t1) / (t2 - t1) * self.TARGET_STEPS))
+        key = (cam, ia, q, int(k))
         cache = self.__dict__.setdefault("_targets", {})
         hit = cache.pop(key, None)
         if hit is None:
-            tq = times[j] + (times[j + 1] - times[j]) * q / self.TARGET_STEPS
-            full = self.interpolated(cam, min(max(tq, times[j]), times[j + 1]))
+            full = self.interpolated(cam, min(max(t1 + (t2 - t1) * q / self.TARGET_STEPS, t1), t2))
             if full is None:
                 return None
             hit = avg_pool_blocks(full, k)
@@ -431,10 +434,8 @@ class SpikeGuidance:
         item = ctx.trainer.items[self.by_cam[cam][0]]
         vt = scaled_view(item, float(opt(self.cfg, "between_scale")))
         vt["time"] = inst.time
-        if opt(self.cfg, "between_motion_only"):
-            rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time, motion_only=True)
-        else:
-            rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time)
+        rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time,
+                                                           motion_only=bool(opt(self.cfg, "between_motion_only")))
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": vt["width"] / item["width"]}
         ctx.__dict__["_between"] = out
         return out

@@ -78,6 +78,17 @@ class CaseResult:
     def nonfinite(self) -> int:
         return self.nonfinite_params + self.nonfinite_grads + self.nonfinite_other
 
+    def tally_grad(self, grad: torch.Tensor) -> int:
+        """Count ``grad``'s non-finite entries (returned and added to ``nonfinite_grads``)
+        and track its largest finite magnitude in ``max_grad``."""
+        bad = _count_nonfinite(grad)
+        self.nonfinite_grads += bad
+        finite = grad.detach().abs()
+        finite = finite[torch.isfinite(finite)]
+        if finite.numel():
+            self.max_grad = max(self.max_grad, float(finite.max()))
+        return bad
+
     @property
     def ok(self) -> bool:
         return self.nonfinite == 0 and not self.failures
@@ -185,13 +196,7 @@ def optimise(result: CaseResult, params: dict, loss_fn: Callable[[dict, int], to
         for name, t in named.items():
             if t.grad is None:
                 continue
-            gb = _count_nonfinite(t.grad)
-            bad += gb
-            result.nonfinite_grads += gb
-            g = t.grad.detach().abs()
-            g = g[torch.isfinite(g)]
-            if g.numel():
-                result.max_grad = max(result.max_grad, float(g.max()))
+            bad += result.tally_grad(t.grad)
         result.nonfinite_other += _count_nonfinite(loss)
         opt.step()
         for t in named.values():
@@ -443,11 +448,7 @@ def case_spikes_extreme(steps, tick, seed=0):
                         + sr.cumulative_spike_loss(spikes, obs[:16])
                     res.nonfinite_other += _count_nonfinite(loss) + _count_nonfinite(counts)
                     loss.backward()
-                    gb = _count_nonfinite(raw.grad)
-                    res.nonfinite_grads += gb
-                    finite = raw.grad[torch.isfinite(raw.grad)].abs()
-                    if finite.numel():
-                        res.max_grad = max(res.max_grad, float(finite.max()))
+                    gb = res.tally_grad(raw.grad)
                     opt.step()
                     pb = _count_nonfinite(raw)
                     res.nonfinite_params += pb
@@ -668,13 +669,7 @@ def case_trainer(steps, tick, seed=0):
                         bad += _count_nonfinite(t)
                         res.nonfinite_params += _count_nonfinite(t)
                         if t.grad is not None:
-                            gb = _count_nonfinite(t.grad)
-                            bad += gb
-                            res.nonfinite_grads += gb
-                            g = t.grad.detach().abs()
-                            g = g[torch.isfinite(g)]
-                            if g.numel():
-                                res.max_grad = max(res.max_grad, float(g.max()))
+                            bad += res.tally_grad(t.grad)
                     res.nonfinite_other += _count_nonfinite(float(p["loss"]))
                     if bad and res.first_bad_step is None:
                         res.first_bad_step = res.steps
