@@ -187,7 +187,7 @@ def sample_run(run_dir: str, num_samples: int = 0, device="cpu") -> dict:
     """Open a run and sample it at K times (K = 0: automatic). No bpy."""
     from .gaussian_nodes import auto_num_samples, sample_scene
 
-    model_mod = engine_module("model")
+    model_mod = engine_module("scene.model")
     scene = model_mod.load_run(run_dir, device=device)
     t0, t1 = scene.time_range
     k = int(num_samples) if num_samples and num_samples >= 2 else auto_num_samples(t1 - t0, scene.num_gaussians)
@@ -206,7 +206,7 @@ def render_views_job(*, progress, cancel, scene4d, views: list, outputs: list, f
     import numpy as np
 
     colour = engine_module("colour")
-    images = engine_module("images")
+    images = engine_module("io.images")
     written = []
     t_start = time.monotonic()
     for i, (view, path) in enumerate(zip(views, outputs)):

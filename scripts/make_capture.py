@@ -293,7 +293,7 @@ def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"), stride
     current time, coloured from that camera's rendered frame 0: what a dense two-view
     pointmap (DUSt3R, which the paper uses and we cannot run offline) estimates, here exact.
     Pixel rays follow the OpenCV pinhole model of ``engine.cameras`` (x right, y down, z forward)."""
-    from engine.images import read_image
+    from engine.io.images import read_image
 
     bpy.context.view_layer.update()
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -322,7 +322,7 @@ def frame_times(seconds: float, fps: float) -> np.ndarray:
 def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -> np.ndarray:
     """Linear Rec.709 luminance at the spike camera for each time: (T, H, W) float32."""
     from engine.colour import luminance
-    from engine.images import read_image
+    from engine.io.images import read_image
 
     out = np.empty((len(times), cam["intr"].height, cam["intr"].width), np.float32)
     for i, t in enumerate(times):
@@ -337,7 +337,7 @@ def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -
 
 
 def write_pointmap(scene, objs, cams, out: Path, cfg: dict) -> Path:
-    from engine.capture import write_points
+    from engine.io.points import write_points
 
     set_time(objs, 0.0, cfg["speed"])
     xyz, rgb = stereo_pointmap(scene, cams, out)
@@ -447,8 +447,8 @@ def main(argv=None) -> int:
         log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
             f"{spike_cam['intr'].width}x{spike_cam['intr'].height}")
 
-    from engine.spike_sim import make_gain_map, simulate_spikes
-    from engine.spikes import write_spikes
+    from engine.spike.simulate import make_gain_map, simulate_spikes
+    from engine.io.spikes import write_spikes
 
     h, w = light.shape[1:]
     gain = make_gain_map(h, w, GAIN_STD, args.seed + 1)

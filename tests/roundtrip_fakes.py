@@ -82,7 +82,7 @@ def make_fake_capture(root, *, width=64, height=48, rgb_fps=30.0, eval_fps=150.0
     from pathlib import Path
 
     from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.images import write_png
+    from engine.io.images import write_png
 
     root = Path(root)
     model = FakeScene4D(n=n, seed=seed, time_range=(0.0, duration))

@@ -42,7 +42,7 @@ def test_eval_prints_metrics_json(run_dir, capsys):
 
 
 def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
-    from engine.images import read_exr_channels, read_image_rgba
+    from engine.io.images import read_exr_channels, read_image_rgba
 
     data = json.loads((demo_capture / "transforms.json").read_text())
     cams = {"cameras": data["cameras"], "frames": data["eval_frames"][:2]}
@@ -63,7 +63,8 @@ def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
 
 
 def test_export_npz(run_dir, tmp_path):
-    from engine.model import load_run, read_export
+    from engine.export.npz import read_export
+    from engine.scene.model import load_run
 
     out = tmp_path / "cache.npz"
     assert main(["export", str(run_dir), "--times", "0", "0.2", "5", "--out", str(out)]) == 0

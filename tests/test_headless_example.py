@@ -23,7 +23,7 @@ pytest.importorskip("bpy")
 
 
 def test_headless_example_script(reconstructed, demo_capture, tmp_path):
-    from engine.images import read_exr_channels
+    from engine.io.images import read_exr_channels
 
     out = tmp_path / "example"
     shutil.copytree(reconstructed["run_dir"], out / "runs" / demo_capture.name)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from engine.interpolation import (avg_pool_blocks, block_colour_loss, flow_interpolate, interpolate,
+from engine.train.interpolation import (avg_pool_blocks, block_colour_loss, flow_interpolate, interpolate,
                                   linear_blend, lk_flow, warp)
 
 

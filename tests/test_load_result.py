@@ -43,7 +43,7 @@ def _instance_positions(obj):
 
 def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     from engine.colour import srgb_to_linear
-    from engine.model import load_run
+    from engine.scene.model import load_run
 
     run_dir = reconstructed["run_dir"]
     obj, gn = _load(run_dir, num_samples=4)
@@ -95,8 +95,8 @@ def _cycles_setup(scene, cam, res_pct=40, samples=16):
 
 def test_cycles_render_matches_engine(rt_scene, reconstructed, demo_capture, tmp_path):
     from engine.colour import linear_to_srgb
-    from engine.images import read_image_rgba
-    from engine.model import load_run
+    from engine.io.images import read_image_rgba
+    from engine.scene.model import load_run
 
     bc = roundtrip_util.addon_module("bt4d_addon.blender_cameras")
     assert bpy.ops.bt4d.import_capture(directory=str(demo_capture)) == {"FINISHED"}

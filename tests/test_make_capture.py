@@ -9,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from engine.capture import load_capture
+from engine.io.capture import load_capture
 from engine.colour import luminance, srgb_to_linear
-from engine.images import read_image
+from engine.io.images import read_image
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

@@ -124,7 +124,7 @@ def test_imported_capture_camera_round_trip(demo_capture):
     import blender_util
     import roundtrip_util
 
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     roundtrip_util.enable()
     blender_util.reset_scene()

@@ -17,7 +17,7 @@ from bt4d_addon import gaussian_material as gm  # noqa: E402
 from bt4d_addon import gaussian_nodes as gn  # noqa: E402
 from engine.cameras import look_at_c2w  # noqa: E402
 from engine.colour import linear_to_srgb, srgb_to_linear  # noqa: E402
-from engine.images import read_image_rgba  # noqa: E402
+from engine.io.images import read_image_rgba  # noqa: E402
 
 # Measured (64x48, 32 samples): 23.0 dB against the engine-style splatter, which blends
 # sRGB-encoded colours; 36 dB against the same splatter blending linear colours (what

@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from engine.colour import linear_to_srgb
-from engine.spike_render import (SensorModel, SpikeRenderer, cumulative_spike_loss, expected_counts,
+from engine.spike.render import (SensorModel, SpikeRenderer, cumulative_spike_loss, expected_counts,
                                  fit_sensor, heaviside_surrogate, integrate_and_fire, resample_to,
                                  sensor_light, spike_count_loss)
-from engine.spike_sim import make_gain_map, simulate_spikes
+from engine.spike.simulate import make_gain_map, simulate_spikes
 
 
 def _srgb_image(h=40, w=60, seed=0):

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.capture import load_capture
+from engine.io.capture import load_capture
 from engine.errors import CaptureError, RunError
-from engine.init_points import cameras_focus, initial_points, random_points, stereo_points
-from engine.model import load_run, read_export
-from engine.render_views import (orbit_views, read_camera_file, synthetic_scene, views_to_records,
-                                 write_renders, write_synthetic_capture)
+from engine.geometry.init_points import cameras_focus, initial_points, random_points, stereo_points
+from engine.export.npz import export_npz, read_export
+from engine.scene.model import load_run
+from tools.synthetic import synthetic_scene, write_synthetic_capture
+from engine.export.render_views import orbit_views, read_camera_file, views_to_records, write_renders
 from engine.train import train
 
 
@@ -66,7 +67,7 @@ def test_export_round_trip(trained, tmp_path):
     _, run = trained
     scene = load_run(run)
     times = np.linspace(0, 2 / 30, 4)
-    path = scene.export(times, tmp_path / "cache.npz")
+    path = export_npz(scene, times, tmp_path / "cache.npz")
     data = read_export(path)
     assert data["times"].shape == (4,) and "means_t" in data and str(data["means_mode"]) == "residual_f16"
     assert data["means_t"].dtype == np.float16
@@ -112,7 +113,7 @@ def read_camera_file_from(tmp_path, records):
 
 def test_write_renders_png_and_exr(trained, tmp_path):
     from engine.colour import srgb_to_linear
-    from engine.images import read_exr_channels, read_image_rgba
+    from engine.io.images import read_exr_channels, read_image_rgba
 
     cap, run = trained
     scene = load_run(run)

@@ -1,4 +1,4 @@
-"""``python -m engine ablate CAPTURE --seconds N --out DIR``: equal-time ablation (paper Tables 1, 3).
+"""``python -m tools ablate CAPTURE --seconds N --out DIR``: equal-time ablation (paper Tables 1, 3).
 
 Trains every variant for the same wall-clock budget, scores each on the capture's eval
 frames (:func:`engine.evaluate.evaluate`), prints one table (PSNR / SSIM over all eval
@@ -22,10 +22,17 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import sys
 import time
 from pathlib import Path
+
+from engine.cli.train import parse_overrides
+from engine.errors import CaptureError, RunError
+from engine.evaluate import evaluate
+from engine.train import train
+
+from . import report
+from .report import fmt, text_table
 
 HELP = "train each ablation variant for the same wall time, evaluate, tabulate and plot"
 
@@ -82,10 +89,8 @@ def run_ablation(capture, out_dir, seconds: float, variants: list[str], *, prese
                  device=None, overrides: dict | None = None, resume: bool = False, train_fn=None, eval_fn=None,
                  log=print) -> list[dict]:
     """Train + evaluate each variant; returns one row per variant (metrics + settings)."""
-    if train_fn is None:
-        from ..train import train as train_fn
-    if eval_fn is None:
-        from ..evaluate import evaluate as eval_fn
+    train_fn = train_fn or train
+    eval_fn = eval_fn or evaluate
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -112,52 +117,31 @@ def run_ablation(capture, out_dir, seconds: float, variants: list[str], *, prese
         rows.append({"variant": name, "description": desc, **{k: metrics.get(k) for k in COLUMNS},
                      "train_seconds": metrics.get("train_seconds"), "steps": metrics.get("steps", metrics.get("step")),
                      "num_gaussians": metrics.get("num_gaussians")})
-        log(f"[ablate] {name}: " + ", ".join(f"{k}={_fmt(metrics.get(k))}" for k in COLUMNS))
+        log(f"[ablate] {name}: " + ", ".join(f"{k}={fmt(metrics.get(k))}" for k in COLUMNS))
     return rows
-
-
-def _fmt(x, nd: int = 2) -> str:
-    if x is None or (isinstance(x, float) and math.isnan(x)):
-        return "-"
-    return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
 
 
 def format_table(rows: list[dict]) -> str:
     head = ["variant", "PSNR", "SSIM", "PSNR inter", "SSIM inter", "PSNR dyn", "PSNR key", "steps", "train s"]
-    lines = [[r["variant"], _fmt(r["psnr"]), _fmt(r["ssim"], 3), _fmt(r["psnr_interframe"]),
-              _fmt(r["ssim_interframe"], 3), _fmt(r["psnr_dynamic"]), _fmt(r.get("psnr_keyframe")), _fmt(r.get("steps")),
-              _fmt(r.get("train_seconds"), 1)] for r in rows]
+    lines = [[r["variant"], fmt(r["psnr"]), fmt(r["ssim"], 3), fmt(r["psnr_interframe"]),
+              fmt(r["ssim_interframe"], 3), fmt(r["psnr_dynamic"]), fmt(r.get("psnr_keyframe")), fmt(r.get("steps")),
+              fmt(r.get("train_seconds"), 1)] for r in rows]
     base = next((r for r in rows if r["variant"] == "rgb-only"), None)
     if base is not None and base.get("psnr_interframe") is not None:
         head.append("d inter vs rgb-only")
         for line, r in zip(lines, rows):
             v = r.get("psnr_interframe")
             line.append("-" if v is None else f"{v - base['psnr_interframe']:+.2f}")
-    widths = [max(len(str(x)) for x in col) for col in zip(head, *lines)]
-    fmt = lambda vals: "  ".join(str(v).rjust(w) if i else str(v).ljust(w)  # noqa: E731
-                                 for i, (v, w) in enumerate(zip(vals, widths)))
-    return "\n".join([fmt(head), fmt(["-" * w for w in widths])] + [fmt(line) for line in lines])
+    return text_table(head, lines)
 
 
 def write_csv(rows: list[dict], path) -> Path:
-    path = Path(path)
-    keys = ["variant", "description", *COLUMNS, "steps", "train_seconds", "num_gaussians"]
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in keys})
-    return path
+    return report.write_csv(rows, path, ["variant", "description", *COLUMNS, "steps", "train_seconds", "num_gaussians"])
 
 
 def plot(rows: list[dict], path, title: str = "") -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     metrics = [("psnr", "PSNR (all eval)"), ("psnr_interframe", "PSNR (inter-frame)"), ("psnr_dynamic", "PSNR (dynamic px)")]
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
+    fig, axes = report.plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
     names = [r["variant"] for r in rows]
     colours = ["#888888" if n.startswith("rgb") else "#d62728" if n == "full" else "#1f77b4" for n in names]
     for ax, (key, label) in zip(axes[0], metrics):
@@ -174,19 +158,10 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
         ax.set_xticklabels(names, rotation=35, ha="right", fontsize=8)
         ax.set_title(label, fontsize=10)
         ax.set_ylabel("dB")
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return report.save_figure(fig, path, title)
 
 
 def main(args) -> int:
-    from ..errors import CaptureError, RunError
-    from .train import parse_overrides
-
     variants = parse_variants(args.variants)
     overrides = parse_overrides(args.overrides)
     out = Path(args.out)

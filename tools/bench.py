@@ -1,4 +1,4 @@
-"""Error against wall time (``python -m engine bench``), plus micro-benchmark ratios.
+"""Error against wall time (``python -m tools bench``), plus micro-benchmark ratios.
 
 Design (documented here because the numbers depend on it):
 
@@ -20,7 +20,7 @@ Design (documented here because the numbers depend on it):
   ``eval_stride``-th one) -> PSNR / SSIM at (wall seconds since ``train()`` was called,
   step). The final model gets the full ``engine.evaluate.evaluate`` (all eval frames:
   PSNR, SSIM, inter-frame and dynamic PSNR) and the static-region flicker
-  (:func:`engine.freezing.run_flicker`).
+  (:func:`engine.evaluate.flicker.run_flicker`).
 * Peak memory is the process's peak resident set size during the run (Linux ``VmHWM``,
   reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
   process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
@@ -40,8 +40,6 @@ against wall time), ``bench.md`` (final table + micro-benchmarks), ``bench.json`
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import os
@@ -57,6 +55,22 @@ from typing import Callable
 
 import numpy as np
 import torch
+from tqdm import tqdm
+
+from engine.evaluate import evaluate
+from engine.evaluate.flicker import run_flicker
+from engine.evaluate.metrics import psnr, ssim
+from engine.io.capture import load_capture
+from engine.io.checkpoint import CHECKPOINT
+from engine.io.spikes import read_spikes, write_spikes
+from engine.raster import rasterization
+from engine.scene.model import load_run, view_tensors
+from engine.train import train
+
+from . import report
+from .bench_decode import best_of, community_load_vidar, python_loop_load
+from .bench_raster import make_scene, time_cell
+from .report import fmt
 
 VARIANTS = ("full", "rgb_only", "freeze", "early_stop", "cull")
 # the skip variants are switches of the trainer (engine.presets.TrainConfig, "skipping" block)
@@ -126,9 +140,6 @@ class FrameCache:
 
 def score_model(model, capture, frames, cache: FrameCache) -> dict:
     """PSNR / SSIM of a ``Model4D`` on ``frames`` (each at its own time)."""
-    from .metrics import psnr, ssim
-    from .model import view_tensors
-
     ps, ss = [], []
     was_training = model.training
     model.eval()
@@ -146,9 +157,6 @@ def score_model(model, capture, frames, cache: FrameCache) -> dict:
 
 def score_checkpoint(path: Path, capture, frames, cache: FrameCache) -> dict:
     """Load one checkpoint file and score it; returns psnr, ssim, step, num_gaussians."""
-    from .checkpoint import CHECKPOINT
-    from .model import load_run
-
     with tempfile.TemporaryDirectory(prefix="bt4d_bench_") as tmp:
         dst = Path(tmp) / CHECKPOINT
         try:
@@ -198,12 +206,8 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
             train_fn: Callable | None = None, evaluate_fn: Callable | None = None, flicker: bool = True,
             bar_factory=None, device=None) -> RunResult:
     """Train one (preset, variant) for ``seconds`` and sample its error curve (module doc)."""
-    if train_fn is None:
-        from .train import train as train_fn
-    if evaluate_fn is None:
-        from .evaluate import evaluate as evaluate_fn
-    from .checkpoint import CHECKPOINT
-
+    train_fn = train_fn or train
+    evaluate_fn = evaluate_fn or evaluate
     run_dir = Path(out_dir) / f"{preset}-{variant}"
     if run_dir.exists():
         shutil.rmtree(run_dir)
@@ -287,13 +291,9 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
     proxy = set(es.get("frames") or []) if es.get("proxy") == "eval" else set()
     if proxy:
         rest = [f for f in all_eval if str(f.path) not in proxy]
-        from .model import load_run
-
         final["psnr_excl_proxy"] = score_model(load_run(run_dir).model, capture, rest, cache)["psnr"]
     if flicker:
         try:
-            from .freezing import run_flicker
-
             final["flicker"] = run_flicker(run_dir, capture)
         except Exception as exc:
             final["flicker"] = {"error": f"{type(exc).__name__}: {exc}"}
@@ -310,20 +310,18 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
 def micro_raster(quick: bool = False, repeats: int | None = None) -> dict:
     """Rasterizer forward+backward: fast cpu vs dense reference (small scene, where the
     reference fits in memory) and vs the plain-PyTorch tiled path (demo resolution)."""
-    from .cli.bench_raster import _time_cell, make_scene
-
     rep = repeats or (2 if quick else 5)
     out = {}
     w, h, n = (64, 48, 200) if quick else (96, 72, 400)
     scene = make_scene(n, w, h)
-    cpu = _time_cell(scene, w, h, "cpu", rep, None)
-    ref = _time_cell(scene, w, h, "reference", max(1, rep - 1), None)
+    cpu = time_cell(scene, w, h, "cpu", rep, None)
+    ref = time_cell(scene, w, h, "reference", max(1, rep - 1), None)
     out["small"] = {"size": f"{w}x{h}", "gaussians": n, "cpu_ms": cpu[1], "reference_ms": ref[1],
                     "speedup_vs_reference": ref[1] / cpu[1]}
     w, h, n = (160, 120, 2000) if quick else (160, 120, 10000)
     scene = make_scene(n, w, h)
-    cpu = _time_cell(scene, w, h, "cpu", rep, None)
-    tor = _time_cell(scene, w, h, "torch", max(1, rep - 1), None)
+    cpu = time_cell(scene, w, h, "cpu", rep, None)
+    tor = time_cell(scene, w, h, "torch", max(1, rep - 1), None)
     out["demo"] = {"size": f"{w}x{h}", "gaussians": n, "cpu_ms": cpu[1], "torch_ms": tor[1],
                    "speedup_vs_torch": tor[1] / cpu[1]}
     return out
@@ -331,18 +329,15 @@ def micro_raster(quick: bool = False, repeats: int | None = None) -> dict:
 
 def micro_decode(quick: bool = False) -> dict:
     """Spike decoding: read_spikes vs the community per-frame loader and the per-byte loop."""
-    from .cli.bench_decode import _best, community_load_vidar, python_loop_load
-    from .spikes import read_spikes, write_spikes
-
     h, w, n = 250, 400, (200 if quick else 1000)
     rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory(prefix="bt4d_bench_") as tmp:
         path = Path(tmp) / "s.dat"
         write_spikes(path, (rng.random((n, h, w)) < 0.2).astype(np.uint8))
-        t_ours, ours = _best(lambda: read_spikes(path, h, w), 3)
-        t_comm, comm = _best(lambda: community_load_vidar(path, h, w), 2)
+        t_ours, ours = best_of(lambda: read_spikes(path, h, w), 3)
+        t_comm, comm = best_of(lambda: community_load_vidar(path, h, w), 2)
         k = 2
-        t_py, py = _best(lambda: python_loop_load(path, h, w, k), 1)
+        t_py, py = best_of(lambda: python_loop_load(path, h, w, k), 1)
         ok = bool(np.array_equal(comm, ours) and np.array_equal(py, ours[:k]))
     mb = n * h * w / 8 / 1e6
     return {"frames": n, "size": f"{w}x{h}", "read_spikes_s": t_ours, "community_s": t_comm,
@@ -355,8 +350,6 @@ def micro_freeze_step(run_dir, capture, repeats: int = 8) -> dict:
     """Forward + backward of one train view (deformation field + rasterizer, what a
     deformation-stage step costs) of a trained run with its frozen mask
     (``Model4D.static_mask``) and without, interleaved A/B so that load drift cancels."""
-    from .model import load_run, view_tensors
-
     scene = load_run(run_dir)
     model = scene.model
     mask = model.static_mask
@@ -393,23 +386,11 @@ def micro_freeze_step(run_dir, capture, repeats: int = 8) -> dict:
 # ----------------------------------------------------------------------------- reporting
 
 def write_csv(rows: list[dict], path: Path) -> Path:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, extrasaction="ignore")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: ("" if r.get(k) is None else (round(r[k], 4) if isinstance(r.get(k), float) else r[k]))
-                    for k in CSV_FIELDS})
-    Path(path).write_text(buf.getvalue(), encoding="utf-8")
-    return Path(path)
+    return report.write_csv(rows, path, CSV_FIELDS, digits=4)
 
 
 def plot(results: list[RunResult], path: Path, title: str = "") -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = report.plt.subplots(1, 2, figsize=(11, 4.2))
     for r in results:
         pts = [c for c in r.curve if c["wall_s"] is not None and math.isfinite(c["psnr"])]
         if not pts:
@@ -424,18 +405,7 @@ def plot(results: list[RunResult], path: Path, title: str = "") -> Path:
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
-
-
-def _f(x, nd=2):
-    if x is None or (isinstance(x, float) and not math.isfinite(x)):
-        return "-"
-    return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
+    return report.save_figure(fig, path, title)
 
 
 def time_to_within(curve: list, final_psnr: float, db: float = 0.5):
@@ -473,10 +443,10 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
             notes.append(f"frozen {fz['fraction_frozen'] * 100:.0f}% at end, woken {fz['woken']}")
         lines.append(
             f"| {r.preset} | {r.variant} | {r.summary.get('step')}/{r.summary.get('total_steps')} | "
-            f"{_f(r.summary.get('train_seconds'), 1)} | {_f(r.extra.get('cpu_s'), 1)} | {_f(fin.get('psnr'))} | {_f(fin.get('ssim'), 4)} | "
-            f"{_f(fin.get('psnr_interframe'))} | {_f(fin.get('psnr_dynamic'))} | {fin.get('num_gaussians', '-')} | "
-            f"{_f(time_to_within(r.curve, fin.get('psnr') or float('nan')), 1)} | {_f(r.peak_rss_mb, 0)} | "
-            f"{_f(fl.get('flicker_255'), 3)} | {'; '.join(notes)} |")
+            f"{fmt(r.summary.get('train_seconds'), 1)} | {fmt(r.extra.get('cpu_s'), 1)} | {fmt(fin.get('psnr'))} | {fmt(fin.get('ssim'), 4)} | "
+            f"{fmt(fin.get('psnr_interframe'))} | {fmt(fin.get('psnr_dynamic'))} | {fin.get('num_gaussians', '-')} | "
+            f"{fmt(time_to_within(r.curve, fin.get('psnr') or float('nan')), 1)} | {fmt(r.peak_rss_mb, 0)} | "
+            f"{fmt(fl.get('flicker_255'), 3)} | {'; '.join(notes)} |")
     if micro:
         lines += ["", "## Micro-benchmarks (same run)", ""]
         ra = micro.get("raster")
@@ -510,8 +480,6 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
 def warmup() -> float:
     """Compile / load the rasterizer's JIT kernels (forward + backward) before any timed run,
     so that the first configuration does not pay for it. Returns the seconds it took."""
-    from .raster import rasterization
-
     t0 = time.perf_counter()
     g = torch.Generator().manual_seed(0)
     n = 16
@@ -534,15 +502,11 @@ def run_bench(capture, out_dir, *, presets=("fast",), variants=("full", "rgb_onl
               micro: bool = True, quick: bool = False, progress: bool = True, train_fn=None, evaluate_fn=None,
               flicker: bool = True, device=None, log=print) -> dict:
     """Run every (preset, variant), the micro-benchmarks, and write CSV / PNG / markdown / JSON."""
-    from .capture import load_capture
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cap = load_capture(capture) if not hasattr(capture, "eval_frames") else capture
     bar_factory = None
     if progress:
-        from tqdm import tqdm
-
         def bar_factory(total, desc):
             return tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True, leave=True)
     warm_s = warmup()
@@ -554,9 +518,9 @@ def run_bench(capture, out_dir, *, presets=("fast",), variants=("full", "rgb_onl
                         evaluate_fn=evaluate_fn, flicker=flicker, bar_factory=bar_factory, device=device)
             results.append(r)
             if log:
-                log(f"{preset}-{variant}: psnr {_f(r.final.get('psnr'))} ssim {_f(r.final.get('ssim'), 4)} "
-                    f"steps {r.summary.get('step')} in {_f(r.summary.get('train_seconds'), 1)} s "
-                    f"({_f(r.extra.get('cpu_s'), 1)} CPU s), "
+                log(f"{preset}-{variant}: psnr {fmt(r.final.get('psnr'))} ssim {fmt(r.final.get('ssim'), 4)} "
+                    f"steps {r.summary.get('step')} in {fmt(r.summary.get('train_seconds'), 1)} s "
+                    f"({fmt(r.extra.get('cpu_s'), 1)} CPU s), "
                     f"peak RSS {r.peak_rss_mb:.0f} MB")
     micro_res = {}
     frozen_runs = [r for r in results if r.variant == "freeze"]

@@ -1,10 +1,15 @@
-"""``python -m engine bench CAPTURE --out DIR``: eval error against wall time, per preset,
+"""``python -m tools bench CAPTURE --out DIR``: eval error against wall time, per preset,
 for the method and the RGB-only baseline (and the skip features with ``--variants``), in
 one run, plus micro-benchmark ratios (rasterizer, spike decoding). Writes DIR/bench.csv,
-DIR/bench.png, DIR/bench.md and DIR/bench.json; see ``engine.bench`` for the design."""
+DIR/bench.png, DIR/bench.md and DIR/bench.json; see ``tools.bench`` for the design."""
 from __future__ import annotations
 
 import argparse
+
+from engine.cli.train import parse_overrides
+from engine.errors import CaptureError, RunError
+
+from .bench import VARIANTS, run_bench
 
 HELP = "error against wall time per preset (+ RGB-only baseline, skip features) and micro-benchmarks"
 
@@ -35,10 +40,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from ..bench import VARIANTS, run_bench
-    from ..errors import CaptureError, RunError
-    from .train import parse_overrides
-
     presets = [p.strip() for p in (args.presets or ("fast" if args.quick else "fast,balanced")).split(",") if p.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     bad = [v for v in variants if v not in VARIANTS]

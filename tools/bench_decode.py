@@ -1,4 +1,4 @@
-"""``python -m engine bench-decode``: spike-stream decode speed, ours vs the usual loaders.
+"""``python -m tools bench-decode``: spike-stream decode speed, ours vs the usual loaders.
 
 Writes a synthetic Vidar ``.dat`` (default 400x250, 2000 frames) into a temporary folder
 and decodes it, in one run, with
@@ -25,6 +25,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from engine.io.spikes import read_spikes, write_spikes
 
 HELP = "benchmark spike .dat decoding: read_spikes vs per-frame loaders vs bare np.unpackbits"
 
@@ -74,7 +76,7 @@ def python_loop_load(path: Path, height: int, width: int, frame_cnt: int) -> np.
     return out
 
 
-def _best(fn, repeat: int):
+def best_of(fn, repeat: int):
     best, result = float("inf"), None
     for _ in range(max(1, repeat)):
         t = time.perf_counter()
@@ -84,8 +86,6 @@ def _best(fn, repeat: int):
 
 
 def main(args) -> int:
-    from ..spikes import read_spikes, write_spikes
-
     h, w, n = args.height, args.width, args.frames
     if (h * w) % 8:
         print(f"error: {w}x{h} is not a whole number of bytes per frame")
@@ -103,18 +103,18 @@ def main(args) -> int:
               f"best of {args.repeat}")
 
         rows = []
-        t_ours, ours = _best(lambda: read_spikes(path, h, w), args.repeat)
+        t_ours, ours = best_of(lambda: read_spikes(path, h, w), args.repeat)
         rows.append(("read_spikes (memmap + unpackbits + flip)", t_ours, n))
-        t_bare, bare = _best(lambda: np.unpackbits(raw, bitorder="little"), args.repeat)
+        t_bare, bare = best_of(lambda: np.unpackbits(raw, bitorder="little"), args.repeat)
         rows.append(("bare np.unpackbits (bytes in memory)", t_bare, n))
         assert np.array_equal(bare.reshape(n, h, w)[:, ::-1], ours)
         del bare
-        t_comm, comm = _best(lambda: community_load_vidar(path, h, w), max(1, args.repeat - 1))
+        t_comm, comm = best_of(lambda: community_load_vidar(path, h, w), max(1, args.repeat - 1))
         rows.append(("community per-frame loader (8 bit-planes)", t_comm, n))
         assert np.array_equal(comm, ours), "community loader disagrees with read_spikes"
         del comm
         k = max(1, min(args.python_frames, n))
-        t_py, py = _best(lambda: python_loop_load(path, h, w, k), 1)
+        t_py, py = best_of(lambda: python_loop_load(path, h, w, k), 1)
         assert np.array_equal(py, ours[:k]), "pure-Python loader disagrees with read_spikes"
         rows.append((f"pure-Python per-byte loop ({k} frames, scaled)", t_py * n / k, k))
 

@@ -1,4 +1,4 @@
-"""``python -m engine bench-raster``: rasterizer speed, fast CPU path vs plain PyTorch.
+"""``python -m tools bench-raster``: rasterizer speed, fast CPU path vs plain PyTorch.
 
 Random scene in front of one camera (Gaussians a few to tens of pixels across), forward
 and forward+backward wall time (median of repeats) at 160x120 and 320x240 with
@@ -13,6 +13,11 @@ import os
 import statistics
 import tempfile
 import time
+
+import torch
+
+from engine.raster import cpu as raster_cpu
+from engine.raster import rasterization
 
 HELP = "benchmark the Gaussian rasterizer (fast CPU path vs plain PyTorch)"
 
@@ -34,7 +39,6 @@ def add_arguments(parser) -> None:
 
 
 def make_scene(n, width, height, seed=0, sh_degree=None):
-    import torch
     g = torch.Generator().manual_seed(seed)
     f = 0.9 * width
     z = 2.0 + 4.0 * torch.rand(n, generator=g)
@@ -54,9 +58,7 @@ def make_scene(n, width, height, seed=0, sh_degree=None):
     return [means, quats, scales, opac, colors, viewmats, Ks]
 
 
-def _time_cell(args, width, height, backend, repeats, sh_degree):
-    import torch
-    from ..raster import rasterization
+def time_cell(args, width, height, backend, repeats, sh_degree):
     params = [a.clone().requires_grad_(True) for a in args[:5]]
 
     def fwd():
@@ -97,12 +99,9 @@ def _maxrss_mb() -> float:
 def main(args) -> int:
     if args.cold_compile:
         os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="bt4d-numba-")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads libgomp
-    import torch
     if args.threads > 0:
         torch.set_num_threads(args.threads)
         os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
-    from ..raster import cpu as raster_cpu
 
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     sizes = SIZES[:1] if args.quick else SIZES
@@ -114,13 +113,14 @@ def main(args) -> int:
             print("numba unavailable:", raster_cpu.unavailable_reason(), "- skipping cpu")
             backends.remove("cpu")
         else:
-            import numba
+            import numba  # lazy: after NUMBA_CACHE_DIR / NUMBA_NUM_THREADS are set above
+
             print(f"numba {numba.__version__}, {numba.get_num_threads()} threads; "
                   f"torch {torch.__version__}, {torch.get_num_threads()} threads; "
                   f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
             # first call in this process: JIT compile, or load from numba's cache
             sc = make_scene(500, 64, 48, sh_degree=args.sh_degree)
-            _, _, first = _time_cell(sc, 64, 48, "cpu", 0, args.sh_degree)
+            _, _, first = time_cell(sc, 64, 48, "cpu", 0, args.sh_degree)
             try:
                 layer = numba.threading_layer()
             except Exception:
@@ -139,7 +139,7 @@ def main(args) -> int:
                     rows.append((backend, w, h, n, None, None))
                     continue
                 sc = make_scene(n, w, h, sh_degree=args.sh_degree)
-                f, fb, _ = _time_cell(sc, w, h, backend, repeats, args.sh_degree)
+                f, fb, _ = time_cell(sc, w, h, backend, repeats, args.sh_degree)
                 rows.append((backend, w, h, n, f, fb))
                 print(f"  {backend:9s} {w}x{h} N={n:>6d}: fwd {f:8.1f} ms  fwd+bwd {fb:8.1f} ms",
                       flush=True)

@@ -28,7 +28,7 @@ def orbit_for(scene, capture, n: int, degrees: float):
     """Orbit through the eval (or first train) camera around the scene centre at mid time."""
     import numpy as np
 
-    from ..render_views import orbit_views
+    from ..export.render_views import orbit_views
 
     t_mid = 0.5 * (scene.time_range[0] + scene.time_range[1])
     frames = list(capture.eval_frames) or list(capture.frames)
@@ -48,11 +48,11 @@ def main(args) -> int:
 
     from tqdm import tqdm
 
-    from ..capture import load_capture
+    from ..io.capture import load_capture
     from ..errors import CaptureError, RunError
-    from ..evaluate import evaluate
-    from ..model import load_run
-    from ..render_views import write_renders
+    from ..evaluate.heldout import evaluate
+    from ..scene.model import load_run
+    from ..export.render_views import write_renders
     from ..train import train
     from .train import parse_overrides
 

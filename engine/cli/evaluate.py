@@ -15,7 +15,7 @@ def add_arguments(p) -> None:
 
 def main(args) -> int:
     from ..errors import CaptureError, RunError
-    from ..evaluate import evaluate
+    from ..evaluate.heldout import evaluate
 
     try:
         result = evaluate(args.run, args.capture, device=args.device)

@@ -17,8 +17,8 @@ def add_arguments(p) -> None:
 
 def main(args) -> int:
     from ..errors import CaptureError, RunError
-    from ..model import load_run
-    from ..render_views import read_camera_file, write_renders
+    from ..scene.model import load_run
+    from ..export.render_views import read_camera_file, write_renders
 
     try:
         scene = load_run(args.run, device=args.device)

@@ -28,10 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from ..capture import load_capture
+    from ..io.capture import load_capture
     from ..colour import linear_to_srgb
     from ..errors import CaptureError
-    from ..images import write_exr, write_png
+    from ..io.images import write_exr, write_png
 
     try:
         cap = load_capture(args.capture)

@@ -11,6 +11,7 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
+from pytorch_msssim import ssim as _ssim
 
 
 def _t(img) -> torch.Tensor:
@@ -45,7 +46,6 @@ def psnr(pred, gt, mask=None) -> float:
 
 def ssim(pred, gt) -> float:
     """SSIM (pytorch_msssim, data_range=1). Images smaller than the 11 px window use a smaller one."""
-    from pytorch_msssim import ssim as _ssim
 
     p, g = _t(pred).clamp(0, 1), _t(gt).clamp(0, 1)
     win = 11

@@ -19,7 +19,7 @@ Three layouts load:
 Spike streams (ours only): ``w``/``h`` default to the camera's and must match it;
 ``num_frames`` defaults to the whole file; ``transform_matrix`` defaults to the first pose of
 the stream's camera, else of ``co_located_with``; optional ``head_cols`` / ``flipud`` are
-passed to :func:`engine.spikes.read_spikes`.
+passed to :func:`engine.io.spikes.read_spikes`.
 
 Everything the loader can check without decoding images is checked at load time and
 reported as :class:`engine.errors.CaptureError` naming the file (and the frame / key) and
@@ -28,23 +28,20 @@ the problem. Image sizes are checked when a frame's pixels are loaded
 """
 from __future__ import annotations
 
-import json
-import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from . import images
-from .cameras import Intrinsics, View
-from .colour import linear_to_srgb
-from .errors import CaptureError
-from .fileio import atomic_path
+from ..cameras import Intrinsics, View
+from ..colour import linear_to_srgb
+from ..errors import CaptureError
+from .points import load_points
+from .records import CheckContext, check_intrinsics, read_json, resolve_image
 from .spikes import SpikeStream, count_frames, frame_bytes
 
 ROLES = ("train", "eval")
-_IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg")
 
 
 # ----------------------------------------------------------------------------- records
@@ -212,125 +209,6 @@ class Capture:
         return None if self.points_path is None else load_points(self.points_path)
 
 
-# ----------------------------------------------------------------------------- validation helpers
-
-def _read_json(path: Path) -> dict:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CaptureError(path, "file does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CaptureError(path, f"cannot read: {exc}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CaptureError(path, f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
-    if not isinstance(data, dict):
-        raise CaptureError(path, f"top level must be a JSON object, got {type(data).__name__}")
-    return data
-
-
-class _Ctx:
-    """Error context: the file being read."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def fail(self, where: str, problem: str):
-        raise CaptureError(self.path, f"{where}: {problem}" if where else problem)
-
-    def get(self, d: dict, key: str, where: str):
-        if not isinstance(d, dict):
-            self.fail(where, f"must be a JSON object, got {type(d).__name__}")
-        if key not in d:
-            self.fail(where, f"missing key {key!r}")
-        return d[key]
-
-    def num(self, value, where: str, *, positive: bool = False, integer: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            self.fail(where, f"must be a number, got {value!r}")
-        v = float(value)
-        if not math.isfinite(v):
-            self.fail(where, f"must be a finite number, got {value!r}")
-        if positive and v <= 0:
-            self.fail(where, f"must be positive, got {value!r}")
-        if integer:
-            if v != int(v):
-                self.fail(where, f"must be a whole number, got {value!r}")
-            return int(v)
-        return v
-
-    def matrix(self, value, where: str) -> np.ndarray:
-        try:
-            m = np.array(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            self.fail(where, "must be a 4x4 matrix of numbers (rows of 4)")
-        if m.shape != (4, 4):
-            self.fail(where, f"must be a 4x4 matrix, got shape {m.shape}")
-        if not np.all(np.isfinite(m)):
-            self.fail(where, "contains non-finite numbers (NaN or inf)")
-        return m
-
-    def string(self, value, where: str) -> str:
-        if not isinstance(value, str) or not value:
-            self.fail(where, f"must be a non-empty string, got {value!r}")
-        return value
-
-    def list_of(self, data: dict, key: str, *, required: bool) -> list:
-        if key not in data:
-            if required:
-                self.fail("", f"missing key {key!r}")
-            return []
-        v = data[key]
-        if not isinstance(v, list):
-            self.fail(key, f"must be a list, got {type(v).__name__}")
-        return v
-
-
-def _intrinsics(ctx: _Ctx, d: dict, where: str, defaults: dict | None = None,
-                size_from=None) -> Intrinsics:
-    """Intrinsics from fl_x/fl_y/cx/cy/w/h (or camera_angle_x/y), falling back to ``defaults``."""
-    src = dict(defaults or {})
-    src.update({k: v for k, v in d.items() if k in ("w", "h", "fl_x", "fl_y", "cx", "cy",
-                                                     "camera_angle_x", "camera_angle_y")})
-    if "w" not in src or "h" not in src:
-        if size_from is None:
-            ctx.fail(where, "missing key 'w'" if "w" not in src else "missing key 'h'")
-        w, h = size_from()
-    else:
-        w = ctx.num(src["w"], f"{where}.w", positive=True, integer=True)
-        h = ctx.num(src["h"], f"{where}.h", positive=True, integer=True)
-    if "fl_x" in src:
-        fx = ctx.num(src["fl_x"], f"{where}.fl_x", positive=True)
-    elif "camera_angle_x" in src:
-        ang = ctx.num(src["camera_angle_x"], f"{where}.camera_angle_x", positive=True)
-        fx = 0.5 * w / math.tan(0.5 * ang)
-    else:
-        ctx.fail(where, "missing key 'fl_x' (or 'camera_angle_x')")
-    if "fl_y" in src:
-        fy = ctx.num(src["fl_y"], f"{where}.fl_y", positive=True)
-    elif "camera_angle_y" in src:
-        fy = 0.5 * h / math.tan(0.5 * ctx.num(src["camera_angle_y"], f"{where}.camera_angle_y", positive=True))
-    else:
-        fy = fx
-    cx = ctx.num(src["cx"], f"{where}.cx") if "cx" in src else w / 2.0
-    cy = ctx.num(src["cy"], f"{where}.cy") if "cy" in src else h / 2.0
-    return Intrinsics(int(w), int(h), float(fx), float(fy), float(cx), float(cy))
-
-
-def _resolve_image(ctx: _Ctx, root: Path, file_path: str, where: str, *, try_suffixes: bool) -> Path:
-    p = Path(os.path.normpath(root / file_path))  # root is absolute; no per-file realpath
-    if p.is_file():
-        return p
-    if try_suffixes and p.suffix.lower() not in _IMAGE_SUFFIXES:
-        for suf in (".png", ".exr"):
-            q = p.with_name(p.name + suf)
-            if q.is_file():
-                return q
-        ctx.fail(where, f"image file {file_path!r} does not exist (tried {p.name}.png and {p.name}.exr in {p.parent})")
-    ctx.fail(where, f"image file {file_path!r} does not exist ({p})")
-
-
 def _time_range(frames: list[Frame], streams: list[SpikeStreamInfo]) -> tuple[float, float]:
     ts = [f.time for f in frames]
     for s in streams:
@@ -338,7 +216,7 @@ def _time_range(frames: list[Frame], streams: list[SpikeStreamInfo]) -> tuple[fl
     return (float(min(ts)), float(max(ts))) if ts else (0.0, 0.0)
 
 
-def _find_points(root: Path, data: dict, ctx: _Ctx) -> Path | None:
+def _find_points(root: Path, data: dict, ctx: CheckContext) -> Path | None:
     for key in ("points", "ply_file_path"):
         if key in data:
             rel = ctx.string(data[key], key)
@@ -353,7 +231,7 @@ def _find_points(root: Path, data: dict, ctx: _Ctx) -> Path | None:
 # ----------------------------------------------------------------------------- loaders
 
 def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
-    ctx = _Ctx(tpath)
+    ctx = CheckContext(tpath)
     cams_raw = data["cameras"]
     if not isinstance(cams_raw, dict) or not cams_raw:
         ctx.fail("cameras", "must be a non-empty object mapping camera names to intrinsics")
@@ -367,7 +245,7 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
             ctx.fail(f"{where}.role", f"must be one of {ROLES}, got {role!r}")
         extra = {k: v for k, v in c.items() if k not in ("w", "h", "fl_x", "fl_y", "cx", "cy", "role",
                                                           "camera_angle_x", "camera_angle_y")}
-        cameras[name] = CameraInfo(name, _intrinsics(ctx, c, where), role, extra)
+        cameras[name] = CameraInfo(name, check_intrinsics(ctx, c, where), role, extra)
 
     def frame(d, where, default_role) -> Frame:
         if not isinstance(d, dict):
@@ -376,7 +254,7 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
         if cam not in cameras:
             ctx.fail(f"{where}.camera", f"unknown camera {cam!r}; cameras are {sorted(cameras)}")
         fp = ctx.string(ctx.get(d, "file_path", where), f"{where}.file_path")
-        path = _resolve_image(ctx, root, fp, f"{where}.file_path", try_suffixes=False)
+        path = resolve_image(ctx, root, fp, f"{where}.file_path", try_suffixes=False)
         t = ctx.num(ctx.get(d, "time", where), f"{where}.time")
         c2w = ctx.matrix(ctx.get(d, "transform_matrix", where), f"{where}.transform_matrix")
         role = "eval" if default_role == "eval" else cameras[cam].role
@@ -440,7 +318,7 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
 
 
 def _load_nerfstudio(root: Path, tpath: Path, data: dict) -> Capture:
-    ctx = _Ctx(tpath)
+    ctx = CheckContext(tpath)
     raw_frames = ctx.list_of(data, "frames", required=True)
     top = {k: data[k] for k in ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y")
            if k in data}
@@ -453,10 +331,10 @@ def _load_nerfstudio(root: Path, tpath: Path, data: dict) -> Capture:
         if not isinstance(d, dict):
             ctx.fail(where, "must be an object")
         fp = ctx.string(ctx.get(d, "file_path", where), f"{where}.file_path")
-        path = _resolve_image(ctx, root, fp, f"{where}.file_path", try_suffixes=True)
+        path = resolve_image(ctx, root, fp, f"{where}.file_path", try_suffixes=True)
         c2w = ctx.matrix(ctx.get(d, "transform_matrix", where), f"{where}.transform_matrix")
         t = ctx.num(d["time"], f"{where}.time") if "time" in d else 0.0
-        k = _intrinsics(ctx, d, where, top, size_from=lambda p=path: images.read_image_size(p))
+        k = check_intrinsics(ctx, d, where, top, size_from=lambda p=path: images.read_image_size(p))
         key = (k.width, k.height, k.fx, k.fy, k.cx, k.cy)
         if key not in by_key:
             name = f"cam{len(by_key)}"
@@ -477,18 +355,18 @@ def _load_dnerf(root: Path) -> Capture:
             if split == "train":
                 raise CaptureError(tpath, "file does not exist")
             continue
-        data = _read_json(tpath)
-        ctx = _Ctx(tpath)
+        data = read_json(tpath)
+        ctx = CheckContext(tpath)
         raw = ctx.list_of(data, "frames", required=True)
         paths = []
         for i, d in enumerate(raw):
             where = f"frames[{i}]"
             fp = ctx.string(ctx.get(d, "file_path", where), f"{where}.file_path")
-            paths.append(_resolve_image(ctx, root, fp, f"{where}.file_path", try_suffixes=True))
+            paths.append(resolve_image(ctx, root, fp, f"{where}.file_path", try_suffixes=True))
         if not paths:
             k = None
         else:
-            k = _intrinsics(ctx, data, "", size_from=lambda p=paths[0]: images.read_image_size(p))
+            k = check_intrinsics(ctx, data, "", size_from=lambda p=paths[0]: images.read_image_size(p))
         if k is not None:
             cameras[split] = CameraInfo(split, k, role)
         for i, (d, path) in enumerate(zip(raw, paths)):
@@ -528,58 +406,7 @@ def load_capture(path: str | Path) -> Capture:
             raise CaptureError(tpath, "missing transforms.json (not a capture folder; no transforms_train.json either)")
     root = root.resolve()
     tpath = tpath.resolve()
-    data = _read_json(tpath)
+    data = read_json(tpath)
     if "cameras" in data:
         return _load_ours(root, tpath, data)
     return _load_nerfstudio(root, tpath, data)
-
-
-# ----------------------------------------------------------------------------- point clouds
-
-def load_points(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Point cloud from a PLY: (xyz float32 [N, 3], rgb float32 [N, 3] in [0, 1] or None)."""
-    import trimesh
-
-    path = Path(path)
-    if not path.is_file():
-        raise CaptureError(path, "point cloud file does not exist")
-    try:
-        geom = trimesh.load(path, process=False)
-    except Exception as exc:
-        raise CaptureError(path, f"cannot read point cloud: {exc}") from None
-    if isinstance(geom, trimesh.Scene):
-        geoms = list(geom.geometry.values())
-        if not geoms:
-            raise CaptureError(path, "PLY holds no geometry")
-        geom = geoms[0]
-    xyz = np.asarray(geom.vertices, dtype=np.float32)
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) == 0:
-        raise CaptureError(path, "PLY holds no vertices")
-    if not np.all(np.isfinite(xyz)):
-        raise CaptureError(path, "PLY vertices contain non-finite numbers (NaN or inf)")
-    colors = None
-    if isinstance(geom, trimesh.PointCloud):
-        c = np.asarray(geom.colors)
-        colors = c if c.size else None
-    else:
-        visual = getattr(geom, "visual", None)
-        if visual is not None and getattr(visual, "kind", None) == "vertex":
-            colors = np.asarray(visual.vertex_colors)
-    rgb = None if colors is None else (colors[:, :3].astype(np.float32) / 255.0)
-    return xyz, rgb
-
-
-def write_points(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
-    """Write a PLY point cloud (rgb float in [0, 1] or None), atomically."""
-    import trimesh
-
-    path = Path(path)
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    colors = None
-    if rgb is not None:
-        colors = np.clip(np.rint(np.asarray(rgb, dtype=np.float64).reshape(-1, 3) * 255), 0, 255).astype(np.uint8)
-        colors = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], axis=1)
-    pc = trimesh.PointCloud(xyz, colors=colors)
-    with atomic_path(path, ".ply") as tmp:
-        pc.export(tmp, file_type="ply")
-    return path

@@ -11,9 +11,10 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from .errors import RunError
+from ..errors import RunError
 from .fileio import atomic_write
 
 CHECKPOINT = "checkpoint.pt"
@@ -74,7 +75,6 @@ def write_json(path: str | Path, data: dict) -> None:
 
 def _json_default(o):
     try:
-        import numpy as np
 
         if isinstance(o, np.generic):
             return o.item()

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .colour import linear_to_srgb
-from .errors import CaptureError
+from ..colour import linear_to_srgb
+from ..errors import CaptureError
 from .fileio import atomic_path, atomic_write
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CaptureError
+from ..cameras import View
+from ..errors import CaptureError
 from .fileio import atomic_write
 
 # frames decoded per unpackbits call (bounds temporary memory for long reads)
@@ -274,7 +275,6 @@ class SpikeStream:
 
     def view(self, t: float):
         """The spike camera as an :class:`engine.cameras.View` at time ``t`` (needs c2w + intrinsics)."""
-        from .cameras import View
 
         if self.c2w is None or self.intrinsics is None:
             raise ValueError(f"spike stream {self.path} has no pose/intrinsics attached")

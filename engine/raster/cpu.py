@@ -10,6 +10,8 @@ import threading
 import numpy as np
 import torch
 
+from .projection import Projected
+
 _kernels = None
 _kernels_error: BaseException | None = None
 _lock = threading.Lock()
@@ -207,7 +209,6 @@ def sh_combine(basis: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=0.01,
             far_plane=1e10, eps2d=0.3):
     """Numba version of ``projection.project_gaussians`` (same rules, same Projected)."""
-    from .projection import Projected
     dt = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
     m2d, con, z, radii_xy = _Project.apply(means, quats.to(dt), scales.to(dt), opacities.detach(),
                                            viewmats.detach(), Ks.detach(), width, height,

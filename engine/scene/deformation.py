@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .fine_deformation import SpikeFineEncoder
+
 # (a, b) coordinate indices of the six planes; 3 is time.
 PLANES = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
 SPATIAL = (0, 1, 2)
@@ -230,8 +232,6 @@ class DeformationField(nn.Module):
         "fine") and the weights waiting in ``pending_fine_state``."""
         if self.fine_encoder is not None or self.fine_spec is None:
             return
-        from .spike_guidance import SpikeFineEncoder
-
         enc = SpikeFineEncoder(self.feature_dim, self.fine_spec).to(self.bounds_min.device)
         if self.pending_fine_state:
             enc.load_state_dict(self.pending_fine_state)

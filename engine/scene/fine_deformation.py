@@ -31,7 +31,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["sinusoidal_encoding", "SpikeTextureEncoder", "FineDeformation", "project_to_grid",
+from ..io.capture import load_capture
+from ..spike.features import SpikeWindowCache
+
+__all__ = ["sinusoidal_encoding", "SpikeTextureEncoder", "FineDeformation", "SpikeFineEncoder", "project_to_grid",
            "count_parameters"]
 
 
@@ -165,3 +168,74 @@ class FineDeformation(nn.Module):
 def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
     return int(sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only))
 
+
+# ----------------------------------------------------------------------------- spike fine encoder
+class SpikeFineEncoder(nn.Module):
+    """Deformation ``fine_encoder`` hook: (xyz_norm [N,3], t) -> [N, feature_dim]."""
+
+    def __init__(self, feature_dim: int, spec: dict):
+        super().__init__()
+        self.spec = dict(spec)
+        self.feature_dim = int(feature_dim)
+        self.net = FineDeformation(feature_dim, d_model=int(spec.get("d_model", 64)),
+                                   channels=int(spec.get("channels", 32)),
+                                   per_gaussian=bool(spec.get("per_gaussian", False)),
+                                   frozen_encoder=bool(spec.get("frozen_encoder", False)))
+        self.register_buffer("bounds_min", torch.as_tensor(spec["bounds_min"], dtype=torch.float32))
+        self.register_buffer("bounds_max", torch.as_tensor(spec["bounds_max"], dtype=torch.float32))
+        self._cache: SpikeWindowCache | None = None
+        self._tried = False
+
+    # --- data source ---------------------------------------------------------------------
+    def attach(self, cache: SpikeWindowCache | None) -> None:
+        self._cache, self._tried = cache, True
+
+    def source(self) -> SpikeWindowCache | None:
+        if self._cache is None and not self._tried:
+            self._tried = True
+            try:
+                cap = load_capture(self.spec["capture"])
+                stream = cap.spike_stream(self.spec["stream_camera"])
+                self._cache = SpikeWindowCache(stream, self.spec["rgb_times"], k_sub=int(self.spec["k_sub"]))
+            except Exception:  # capture moved or gone: the fine branch falls back to zero
+                self._cache = None
+        return self._cache
+
+    def covers(self, t: float) -> bool:
+        lo, hi = self.spec["coverage"]
+        times = self.spec["rgb_times"]
+        return lo - 1e-9 <= t <= hi + 1e-9 and times[0] - 1e-9 <= t <= times[-1] + 1e-9
+
+    def forward(self, xyz_norm: torch.Tensor, t: float) -> torch.Tensor:
+        n = xyz_norm.shape[0]
+        zeros = xyz_norm.new_zeros(n, self.feature_dim)
+        cache = self.source()
+        if cache is None or not self.covers(float(t)):
+            return zeros
+        win = cache.window(float(t))
+        gated = bool(self.spec.get("change_gate", False))
+        grid = vis = None
+        if self.net.per_gaussian or gated:
+            world = (xyz_norm + 1.0) * 0.5 * (self.bounds_max - self.bounds_min) + self.bounds_min
+            v = self.spec["view"]
+            grid, vis = project_to_grid(world.detach(), torch.as_tensor(v["viewmat"]), torch.as_tensor(v["K"]),
+                                        int(v["width"]), int(v["height"]))
+        if self.net.per_gaussian:
+            f = self.net(win, float(t), grid=grid, visible=vis)
+        else:
+            f = self.net(win, float(t)).expand(n, -1)
+        if gated:
+            f = f * self.change_gate(cache, win.index, grid, vis)[:, None]
+        return f
+
+    def change_gate(self, cache: SpikeWindowCache, interval: int, grid: torch.Tensor,
+                    visible: torch.Tensor) -> torch.Tensor:
+        """[N] in [0, 1]: 0 in windows without change and for Gaussians whose canonical
+        position projects where the spike view never changes (engine.spike_change): static
+        regions get no spike-driven motion. The map is the union over all windows because
+        the canonical position of a moving object is where it is at t0, not at ``t``."""
+        ch = cache.change(int(self.spec.get("change_block", 4)))
+        if not bool(ch.changed[int(interval)].any()):
+            return grid.new_zeros(grid.shape[0])
+        g = ch.gate(None, grid, dilate=1)
+        return g * visible.to(g.dtype)

@@ -5,7 +5,7 @@
   them with :func:`engine.raster.rasterization`.
 * :func:`load_run` opens a run directory and returns a :class:`Scene4D` (numpy in, numpy out)
   -- what the Blender side, the render CLI and the exporter call.
-* :func:`export_npz` / :func:`read_export` write and read the compact per-time cache.
+  The compact per-time cache is written by :mod:`engine.export.npz`.
 """
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from .cameras import View
-from .checkpoint import load_checkpoint, read_run_json
+from ..cameras import View
+from ..io.checkpoint import load_checkpoint, read_run_json
+from ..raster import rasterization
 from .deformation import DeformationField
-from .errors import RunError
+from ..errors import RunError
 from .gaussians import SH_C0, GaussianModel, num_sh_bases
-from .presets import TrainConfig
 
 
 def default_device(device=None) -> torch.device:
@@ -94,8 +94,6 @@ class Model4D(nn.Module):
 
         Returns (rgb [1,H,W,3], alpha [1,H,W,1], meta, attributes).
         """
-        from .raster import rasterization
-
         t = vt["time"] if t is None else float(t)
         attrs = self.attributes(t, campos=vt["campos"], fine=fine, motion_only=motion_only)
         bg = self.background if background is None else background
@@ -140,7 +138,8 @@ class Model4D(nn.Module):
         }
 
     @classmethod
-    def from_state(cls, state: dict, cfg: TrainConfig | None = None, device="cpu") -> "Model4D":
+    def from_state(cls, state: dict, cfg=None, device="cpu") -> "Model4D":
+        """``cfg``: a ``TrainConfig`` to set up the Gaussians' optimiser (training), or None."""
         g = GaussianModel.from_state(state["gaussians"], cfg, device=device)
         deform = None
         if state.get("deformation") is not None:
@@ -217,9 +216,6 @@ class Scene4D:
                 })
         return out
 
-    def export(self, times, path) -> Path:
-        return export_npz(self, times, path)
-
 
 def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().to("cpu", torch.float32).numpy()
@@ -243,82 +239,3 @@ def load_run(run_dir, device="cpu") -> Scene4D:
     info = {**info, "time_range": state.get("time_range", info.get("time_range")),
             "step": state.get("step"), "total_steps": state.get("total_steps")}
     return Scene4D(model, run_dir, info, device=device)
-
-
-# ---------------------------------------------------------------------------------- export
-EXPORT_VERSION = 1
-_F16_MAX = 60000.0
-
-
-def _residual(values: np.ndarray, base: np.ndarray, tol: float):
-    """float16 residual from ``base`` where it round-trips within ``tol``, else float32 values."""
-    r = values - base[None]
-    if np.all(np.isfinite(r)) and np.abs(r).max(initial=0) < _F16_MAX:
-        r16 = r.astype(np.float16)
-        err = np.abs(r16.astype(np.float32) - r).max(initial=0)
-        if err <= tol:
-            return r16, "residual_f16"
-    return values.astype(np.float32), "absolute_f32"
-
-
-def export_npz(scene: Scene4D, times, path) -> Path:
-    """Write Gaussians at each of ``times`` to a compact .npz.
-
-    Keys: ``version``, ``times`` [T], canonical ``means, quats, scales, opacities, colors, sh``
-    (float32, at the canonical / static state), and per attribute that changes over time
-    ``<name>_t`` [T, N, ...] with ``<name>_mode`` = "residual_f16" (add to the canonical
-    array) or "absolute_f32". Attributes the deformation never changes have no ``_t`` entry.
-    """
-    path = Path(path)
-    times = np.asarray(times, dtype=np.float64).reshape(-1)
-    with torch.no_grad():
-        g = scene.model.gaussians
-        canon = {"means": _np(g.means), "quats": _np(g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)),
-                 "scales": _np(g.scales), "opacities": _np(g.opacities), "colors": _np(g.colors().clamp(0, 1))}
-    arrays = {"version": np.array(EXPORT_VERSION), "times": times.astype(np.float32),
-              "time_range": np.asarray(scene.time_range, np.float32),
-              "sh": _np(g.sh[:, : num_sh_bases(g.active_sh_degree)]), **canon}
-    extent = float(np.ptp(canon["means"], axis=0).max()) if len(canon["means"]) else 1.0
-    tols = {"means": 1e-3 * max(extent, 1e-6), "quats": 2e-3, "scales": 1e-3 * max(extent, 1e-6),
-            "opacities": 2e-3, "colors": 2e-3}
-    per_time = {k: [] for k in canon}
-    for t in times:
-        a = scene.gaussians_at(float(t))
-        for k in canon:
-            per_time[k].append(a[k])
-    for k, seq in per_time.items():
-        stack = np.stack(seq) if len(seq) else np.zeros((0,) + canon[k].shape, np.float32)
-        if stack.size and np.array_equal(stack, np.broadcast_to(canon[k], stack.shape)):
-            continue
-        data, mode = _residual(stack, canon[k], tols[k])
-        arrays[f"{k}_t"] = data
-        arrays[f"{k}_mode"] = np.array(mode)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
-    return path
-
-
-def read_export(path, index: int | None = None) -> dict:
-    """Read an export; with ``index`` return the Gaussians at ``times[index]`` (float32)."""
-    path = Path(path)
-    if not path.exists():
-        raise RunError(path, "export file does not exist")
-    try:
-        z = np.load(path, allow_pickle=False)
-        data = {k: z[k] for k in z.files}
-    except Exception as exc:
-        raise RunError(path, f"unreadable export: {exc}") from exc
-    if index is None:
-        return data
-    out = {}
-    for k in ("means", "quats", "scales", "opacities", "colors"):
-        if f"{k}_t" in data:
-            mode = str(data[f"{k}_mode"])
-            v = data[f"{k}_t"][index].astype(np.float32)
-            out[k] = v + data[k] if mode == "residual_f16" else v
-        else:
-            out[k] = data[k].astype(np.float32)
-    out["time"] = float(data["times"][index])
-    return out

@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .spike_sim import tfi, tfp
+from .change import change_from_cache
+from .simulate import tfi, tfp
 
 __all__ = ["bracket", "window_textures", "SpikeWindow", "SpikeWindowCache"]
 
@@ -120,8 +121,6 @@ class SpikeWindowCache:
         """:class:`engine.spike_change.SpikeChange` of every interval (computed once)."""
         ch = getattr(self, "_change", None)
         if ch is None or ch.block != int(block):
-            from .spike_change import change_from_cache
-
             ch = self._change = change_from_cache(self, block=int(block))
         return ch
 

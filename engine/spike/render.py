@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .colour import luminance, srgb_to_linear
+from ..colour import luminance, srgb_to_linear
 
 __all__ = [
     "SensorModel", "SpikeRenderer", "rgb_to_luma_linear", "resample_to", "sensor_light",

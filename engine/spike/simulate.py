@@ -24,12 +24,13 @@ holding them in memory.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
 
-from .spikes import write_spikes
+from ..io.spikes import write_spikes
 
 LightSource = np.ndarray | Callable[[float], np.ndarray]
 
@@ -150,7 +151,7 @@ def _fire_kernel():
     global _KERNEL
     if _KERNEL is None:
         try:
-            import numba
+            import numba  # lazy: optional, and its import costs ~0.3 s; numpy fallback below
         except ImportError:
             _KERNEL = False
             return None
@@ -256,8 +257,6 @@ def simulate_spikes_to_file(path: str | Path, light: LightSource, *, flipud: boo
                             **kwargs) -> Path:
     """Like :func:`simulate_spikes` but streams the packed frames into a Vidar ``.dat`` file
     (written to a temporary name, then moved into place). Returns the path."""
-    import os
-
     path = Path(path)
     tmp = path.with_name(f".{path.name}.sim.tmp")
     tmp.unlink(missing_ok=True)

@@ -29,8 +29,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cameras import View
-from .colour import linear_to_srgb, luminance, srgb_to_linear
+from ..cameras import View
+from ..colour import linear_to_srgb, luminance, srgb_to_linear
+from ..spike.render import estimate_sensor
+from ..spike.simulate import tfi, tfp
+from .interpolation import flow_interpolate
 
 __all__ = ["KINDS", "SyntheticFrame", "baseline_frames", "with_baseline", "reinhard_transfer",
            "spike_to_gray", "rgb_to_lab_reinhard", "lab_reinhard_to_rgb"]
@@ -100,7 +103,6 @@ def spike_to_gray(stream, t: float, sensor, *, method: str = "tfp", window: int 
     """Linear luminance [h, w] at time ``t`` from spikes: TFP over ``window`` frames centred
     on ``t`` (or TFI at ``t``), with the sensor response inverted
     (``Y = (light / gain - dark) / scale``)."""
-    from .spike_sim import tfi, tfp
 
     half = window / 2.0 / stream.rate_hz
     if method == "tfp":
@@ -171,7 +173,6 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
                 continue
             stream = capture.spike_stream(streams[cam].camera)
             if sensor is None:
-                from .spike_render import estimate_sensor
                 sens = estimate_sensor(capture, stream)
             else:
                 sens = sensor
@@ -186,7 +187,6 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
                 elif kind == "interp-linear":
                     img = (1 - eps) * a_img + eps * b_img
                 elif kind == "interp-flow":
-                    from .interpolation import flow_interpolate
                     res, flows = flow_interpolate(torch.as_tensor(a_img), torch.as_tensor(b_img), eps,
                                                   flows=flows, return_flows=True)
                     img = res.clamp(0, 1).numpy()

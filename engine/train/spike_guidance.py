@@ -19,8 +19,8 @@
   with ``rgb_only`` the trainer never calls it; without a spike stream it returns nothing
   (no flag needed): such captures train exactly as the RGB-only model.
 
-Every option is a :class:`engine.presets.TrainConfig` field (read with ``getattr`` and the
-defaults in :data:`DEFAULTS`, so older configs keep working).
+Every option is a :class:`engine.train.presets.TrainConfig` field (older run configs get
+the defaults of newer fields through ``TrainConfig.from_dict``).
 """
 from __future__ import annotations
 
@@ -28,48 +28,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
 
-from .fine_deformation import FineDeformation, project_to_grid
+from ..scene.fine_deformation import SpikeFineEncoder, project_to_grid
+from ..spike.features import SpikeWindowCache, bracket
+from ..spike.render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
 from .instants import InstantSampler
 from .interpolation import avg_pool_blocks, block_colour_loss, flow_interpolate, linear_blend
-from .spike_features import SpikeWindowCache
-from .spike_render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
+from .losses import LossTerm
 
-__all__ = ["DEFAULTS", "opt", "SpikeFineEncoder", "SpikeGuidance", "guidance_factory", "spike_stream_info"]
-
-DEFAULTS = {
-    "fine_deformation": True,        # Eq. 6-10 fine branch (needs a spike stream)
-    "fine_per_gaussian": False,      # per-Gaussian spike features instead of one per instant
-    "fine_frozen_encoder": False,    # conv texture encoder frozen at random init
-    "fine_k_sub": 8,                 # sub-windows (tokens) per RGB interval
-    "fine_d_model": 64,
-    "fine_channels": 32,
-    "lr_fine": 1e-3,
-    "spike_loss_weight": 1.0,        # Eq. 17
-    "spike_window": 32,              # m (paper: 32)
-    "spike_loss_mode": "counts",     # counts | if
-    "block_loss_weight": 1.0,        # Eq. 20
-    "block_size": 4,
-    "block_interp": "flow",          # flow | linear
-    "between_every": 1,              # a between-frame render every k deform steps (0: never)
-    "between_colocated_p": 0.75,     # share of between renders at the spike camera's view
-    "between_scale": 0.5,            # between-frame renders at this fraction of the RGB resolution
-    "spike_time_resolution_per_frame": 6.0,  # HexPlane time cells per RGB frame with spikes
-    "between_curriculum": True,      # between-frame instants follow the trainer's time curriculum
-    "between_motion_only": False,    # between-frame losses train the deformation only (not the canonical Gaussians)
-    "spike_static_prior": True,      # Gaussians where the spike view never changes skip the deformation
-    "spike_skip_static": True,       # no between-frame renders in spike windows without change
-    "fine_change_gate": True,        # fine feature only where / when the spike view changes
-    "spike_change_block": 4,         # block size (spike pixels) of the change maps
-    "baseline": "",                  # training-data variant (engine.baselines.KINDS)
-    "baseline_per_interval": 9,
-}
-
-
-def opt(cfg, name: str):
-    return getattr(cfg, name, DEFAULTS[name])
-
+__all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info"]
 
 def spike_stream_info(capture):
     """The first spike stream co-located with a training RGB camera (or None)."""
@@ -81,85 +48,12 @@ def spike_stream_info(capture):
 
 # ----------------------------------------------------------------------------- fine encoder
 
-class SpikeFineEncoder(nn.Module):
-    """Deformation ``fine_encoder`` hook: (xyz_norm [N,3], t) -> [N, feature_dim]."""
-
-    def __init__(self, feature_dim: int, spec: dict):
-        super().__init__()
-        self.spec = dict(spec)
-        self.feature_dim = int(feature_dim)
-        self.net = FineDeformation(feature_dim, d_model=int(spec.get("d_model", 64)),
-                                   channels=int(spec.get("channels", 32)),
-                                   per_gaussian=bool(spec.get("per_gaussian", False)),
-                                   frozen_encoder=bool(spec.get("frozen_encoder", False)))
-        self.register_buffer("bounds_min", torch.as_tensor(spec["bounds_min"], dtype=torch.float32))
-        self.register_buffer("bounds_max", torch.as_tensor(spec["bounds_max"], dtype=torch.float32))
-        self._cache: SpikeWindowCache | None = None
-        self._tried = False
-
-    # --- data source ---------------------------------------------------------------------
-    def attach(self, cache: SpikeWindowCache | None) -> None:
-        self._cache, self._tried = cache, True
-
-    def source(self) -> SpikeWindowCache | None:
-        if self._cache is None and not self._tried:
-            self._tried = True
-            try:
-                from .capture import load_capture
-
-                cap = load_capture(self.spec["capture"])
-                stream = cap.spike_stream(self.spec["stream_camera"])
-                self._cache = SpikeWindowCache(stream, self.spec["rgb_times"], k_sub=int(self.spec["k_sub"]))
-            except Exception:  # capture moved or gone: the fine branch falls back to zero
-                self._cache = None
-        return self._cache
-
-    def covers(self, t: float) -> bool:
-        lo, hi = self.spec["coverage"]
-        times = self.spec["rgb_times"]
-        return lo - 1e-9 <= t <= hi + 1e-9 and times[0] - 1e-9 <= t <= times[-1] + 1e-9
-
-    def forward(self, xyz_norm: torch.Tensor, t: float) -> torch.Tensor:
-        n = xyz_norm.shape[0]
-        zeros = xyz_norm.new_zeros(n, self.feature_dim)
-        cache = self.source()
-        if cache is None or not self.covers(float(t)):
-            return zeros
-        win = cache.window(float(t))
-        gated = bool(self.spec.get("change_gate", False))
-        grid = vis = None
-        if self.net.per_gaussian or gated:
-            world = (xyz_norm + 1.0) * 0.5 * (self.bounds_max - self.bounds_min) + self.bounds_min
-            v = self.spec["view"]
-            grid, vis = project_to_grid(world.detach(), torch.as_tensor(v["viewmat"]), torch.as_tensor(v["K"]),
-                                        int(v["width"]), int(v["height"]))
-        if self.net.per_gaussian:
-            f = self.net(win, float(t), grid=grid, visible=vis)
-        else:
-            f = self.net(win, float(t)).expand(n, -1)
-        if gated:
-            f = f * self.change_gate(cache, win.index, grid, vis)[:, None]
-        return f
-
-    def change_gate(self, cache: SpikeWindowCache, interval: int, grid: torch.Tensor,
-                    visible: torch.Tensor) -> torch.Tensor:
-        """[N] in [0, 1]: 0 in windows without change and for Gaussians whose canonical
-        position projects where the spike view never changes (engine.spike_change): static
-        regions get no spike-driven motion. The map is the union over all windows because
-        the canonical position of a moving object is where it is at t0, not at ``t``."""
-        ch = cache.change(int(self.spec.get("change_block", 4)))
-        if not bool(ch.changed[int(interval)].any()):
-            return grid.new_zeros(grid.shape[0])
-        g = ch.gate(None, grid, dilate=1)
-        return g * visible.to(g.dtype)
-
-
 def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> SpikeFineEncoder | None:
     """Build the fine encoder for ``field`` from the trainer's capture (None without spikes).
     ``cache``: reuse already computed spike windows (same stream and RGB times)."""
     cfg = trainer.cfg
     info = spike_stream_info(trainer.capture)
-    if info is None or not opt(cfg, "fine_deformation"):
+    if info is None or not cfg.fine_deformation:
         return None
     stream = info.open()
     cam = info.co_located_with
@@ -173,10 +67,10 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
             "width": int(stream.width), "height": int(stream.height)}
     spec = {"capture": str(Path(trainer.capture.root).resolve()), "stream_camera": info.camera,
             "rgb_times": rgb_times, "coverage": [float(stream.t0), float(stream.t_end)],
-            "k_sub": int(opt(cfg, "fine_k_sub")), "d_model": int(opt(cfg, "fine_d_model")),
-            "channels": int(opt(cfg, "fine_channels")), "per_gaussian": bool(opt(cfg, "fine_per_gaussian")),
-            "frozen_encoder": bool(opt(cfg, "fine_frozen_encoder")),
-            "change_gate": bool(opt(cfg, "fine_change_gate")), "change_block": int(opt(cfg, "spike_change_block")),
+            "k_sub": int(cfg.fine_k_sub), "d_model": int(cfg.fine_d_model),
+            "channels": int(cfg.fine_channels), "per_gaussian": bool(cfg.fine_per_gaussian),
+            "frozen_encoder": bool(cfg.fine_frozen_encoder),
+            "change_gate": bool(cfg.fine_change_gate), "change_block": int(cfg.spike_change_block),
             "bounds_min": field.bounds_min.tolist(), "bounds_max": field.bounds_max.tolist(), "view": view}
     enc = SpikeFineEncoder(field.feature_dim, spec).to(field.bounds_min.device)
     if cache is None or cache.k_sub != spec["k_sub"] or list(cache.rgb_times) != rgb_times:
@@ -234,19 +128,19 @@ class SpikeGuidance:
         self.renderer = None
         self.sensor = None
         self._spikes = None
-        if self.stream is not None and opt(cfg, "spike_loss_weight") > 0:
+        if self.stream is not None and cfg.spike_loss_weight > 0:
             self.sensor = estimate_sensor(cap, self.stream)
             self.renderer = SpikeRenderer(self.sensor)
             if self.stream.num_frames * self.stream.width * self.stream.height <= 256 * 2 ** 20:
                 self._spikes = self.stream.read(0, self.stream.num_frames)
         self._flows: dict = {}
-        if opt(cfg, "block_loss_weight") > 0 and opt(cfg, "block_interp") == "flow":
+        if cfg.block_loss_weight > 0 and cfg.block_interp == "flow":
             self.precompute_flows()
         self.rng = np.random.default_rng(trainer.seed + 17)
         self._window_cache: SpikeWindowCache | None = None
         self.change = None
         self.skipped_intervals = 0
-        if self.stream is not None and opt(cfg, "spike_skip_static"):
+        if self.stream is not None and cfg.spike_skip_static:
             self.skip_static_windows()
 
     # --- skipping spike windows without change (engine.spike_change) --------------------------
@@ -255,7 +149,7 @@ class SpikeGuidance:
         if self._window_cache is None and self.stream is not None:
             rgb_times = sorted({float(f.time) for f in self.real_frames if f.camera == self.colocated})
             if len(rgb_times) >= 2:
-                self._window_cache = SpikeWindowCache(self.stream, rgb_times, k_sub=int(opt(self.cfg, "fine_k_sub")))
+                self._window_cache = SpikeWindowCache(self.stream, rgb_times, k_sub=int(self.cfg.fine_k_sub))
         return self._window_cache
 
     def skip_static_windows(self) -> None:
@@ -264,10 +158,8 @@ class SpikeGuidance:
         cache = self.window_cache()
         if cache is None:
             return
-        self.change = cache.change(int(opt(self.cfg, "spike_change_block")))
+        self.change = cache.change(int(self.cfg.spike_change_block))
         active = set(self.change.active_intervals.tolist())
-        from .spike_features import bracket
-
         def keep(sampler):
             ks = [k for k in sampler.intervals.tolist()
                   if bracket(cache.rgb_times, 0.5 * (sampler.rgb_times[k] + sampler.rgb_times[k + 1]))[0] in active]
@@ -284,7 +176,7 @@ class SpikeGuidance:
         field = tr.model.deformation if tr.model is not None else None
         if field is None or not tr.model.use_deformation or tr.deform_opt is None:
             return
-        if opt(self.cfg, "spike_static_prior") and tr.model.static_prior is None:
+        if self.cfg.spike_static_prior and tr.model.static_prior is None:
             tr.model.static_prior = self.static_prior()
         if field.fine_encoder is None and getattr(field, "fine_spec", None) is not None:
             field.restore_fine_encoder()  # resumed checkpoint: spec + pending weights
@@ -301,7 +193,7 @@ class SpikeGuidance:
             return
         params = [p for p in field.fine_encoder.parameters() if p.requires_grad]
         if params:
-            tr.add_deformation_parameters(params, opt(self.cfg, "lr_fine"), name="fine")
+            tr.add_deformation_parameters(params, self.cfg.lr_fine, name="fine")
 
     def static_prior(self):
         """``(canonical means [N,3]) -> bool [N]`` for ``Model4D.static_prior``: Gaussians in
@@ -312,7 +204,7 @@ class SpikeGuidance:
         cache = self.window_cache()
         if cache is None or self.stream is None or self.stream.c2w is None or self.stream.intrinsics is None:
             return None
-        change = cache.change(int(opt(self.cfg, "spike_change_block")))
+        change = cache.change(int(self.cfg.spike_change_block))
         view = self.stream.view(0.0)
         vm = torch.as_tensor(view.viewmat, dtype=torch.float32)
         K = torch.as_tensor(self.stream.intrinsics.K, dtype=torch.float32)
@@ -370,7 +262,7 @@ class SpikeGuidance:
         items = self.trainer.items
         a, b = items[ia]["image"][0], items[ib]["image"][0]
         eps = (t - t1) / (t2 - t1)
-        if opt(self.cfg, "block_interp") == "linear":
+        if self.cfg.block_interp == "linear":
             return linear_blend(a, b, eps)[None]
         key = (ia, ib)
         if key not in self._flows:
@@ -413,18 +305,18 @@ class SpikeGuidance:
         if cache != "unset":
             return cache
         ctx.__dict__["_between"] = None
-        every = int(opt(self.cfg, "between_every"))
+        every = int(self.cfg.between_every)
         if ctx.stage != "deform" or every <= 0 or ctx.step % every != 0:
             return None
         self.ensure_fine(ctx.trainer)
         use_spike = self.renderer is not None and self.spike_sampler is not None and self.spike_sampler.has_between
         window = getattr(ctx.trainer, "time_window", None)
-        max_time = window(ctx.step) if callable(window) and opt(self.cfg, "between_curriculum") else None
-        if use_spike and self.colocated in self.by_cam and self.rng.random() < opt(self.cfg, "between_colocated_p"):
+        max_time = window(ctx.step) if callable(window) and self.cfg.between_curriculum else None
+        if use_spike and self.colocated in self.by_cam and self.rng.random() < self.cfg.between_colocated_p:
             cam = self.colocated
             inst = self.spike_sampler.between_instant(max_time=max_time)
         else:
-            if not self.sampler.has_between or opt(self.cfg, "block_loss_weight") <= 0:
+            if not self.sampler.has_between or self.cfg.block_loss_weight <= 0:
                 return None
             cams = [c for c in self.by_cam if c != self.colocated] or list(self.by_cam)
             cam = cams[int(self.rng.integers(len(cams)))]
@@ -432,10 +324,10 @@ class SpikeGuidance:
         if inst is None:  # the time curriculum has not opened any interval yet
             return None
         item = ctx.trainer.items[self.by_cam[cam][0]]
-        vt = scaled_view(item, float(opt(self.cfg, "between_scale")))
+        vt = scaled_view(item, float(self.cfg.between_scale))
         vt["time"] = inst.time
         rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time,
-                                                           motion_only=bool(opt(self.cfg, "between_motion_only")))
+                                                           motion_only=bool(self.cfg.between_motion_only))
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": vt["width"] / item["width"]}
         ctx.__dict__["_between"] = out
         return out
@@ -446,13 +338,13 @@ def _spike_term(guid: SpikeGuidance):
         b = guid.between(ctx)
         if b is None or b["camera"] != guid.colocated or guid.renderer is None:
             return None
-        m = int(opt(guid.cfg, "spike_window"))
+        m = int(guid.cfg.spike_window)
         counts, frames, n = guid.observed(b["instant"].time, m)
         if n == 0:
             return None
         img = b["rgb"][0].clamp(0, 1)
         scale = max(guid.sensor.scale, 1e-6)
-        if opt(guid.cfg, "spike_loss_mode") == "if":
+        if guid.cfg.spike_loss_mode == "if":
             spikes = guid.renderer.render_spikes(img, n)
             return cumulative_spike_loss(spikes, torch.as_tensor(frames, device=img.device)) / scale
         pred = guid.renderer.render_counts(img, n)
@@ -466,7 +358,7 @@ def _block_term(guid: SpikeGuidance):
         b = guid.between(ctx)
         if b is None:
             return None
-        k = int(opt(guid.cfg, "block_size"))
+        k = int(guid.cfg.block_size)
         target = guid.pooled_target(b["camera"], b["instant"].time, k)
         if target is None:
             return None
@@ -486,8 +378,6 @@ def _fine_term(guid: SpikeGuidance):
 
 def guidance_factory(trainer) -> list:
     """Loss terms of the spike guidance for a (non rgb_only) run."""
-    from .train import LossTerm
-
     cfg = trainer.cfg
     if spike_stream_info(trainer.capture) is None:  # no spike stream: the whole branch is skipped
         return []
@@ -499,10 +389,10 @@ def guidance_factory(trainer) -> list:
         terms = []
     else:
         terms = [LossTerm("fine_attach", 1.0, _fine_term(guid), stages=("deform",))]
-    if guid.renderer is not None and opt(cfg, "spike_loss_weight") > 0:
-        terms.append(LossTerm("spike", float(opt(cfg, "spike_loss_weight")), _spike_term(guid), stages=("deform",)))
-    if opt(cfg, "block_loss_weight") > 0:
-        terms.append(LossTerm("block_colour", float(opt(cfg, "block_loss_weight")), _block_term(guid),
+    if guid.renderer is not None and cfg.spike_loss_weight > 0:
+        terms.append(LossTerm("spike", float(cfg.spike_loss_weight), _spike_term(guid), stages=("deform",)))
+    if cfg.block_loss_weight > 0:
+        terms.append(LossTerm("block_colour", float(cfg.block_loss_weight), _block_term(guid),
                               stages=("deform",)))
     return terms
 

@@ -23,9 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .checkpoint import read_run_json, write_json
-from .fileio import atomic_write
-from .errors import RunError
+from ..errors import RunError
+from ..io.capture import load_capture
+from ..io.checkpoint import read_run_json, write_json
+from ..io.fileio import atomic_write
+from ..scene.model import load_run
 from .metrics import is_interframe, motion_masks, psnr, ssim
 
 
@@ -40,8 +42,6 @@ def _round(x, nd=4):
 
 def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_threshold: float = 0.04,
              mask_dilate: int = 2) -> dict:
-    from .capture import load_capture
-    from .model import load_run
 
     run_dir = Path(run_dir)
     scene = load_run(run_dir, device=device)
