@@ -9,8 +9,10 @@ from __future__ import annotations
 
 # First, before anything imports torch: engine/__init__.py (numpy only) sets OMP_WAIT_POLICY
 # so that torch's and numba's OpenMP pools do not busy-wait against each other.
-from . import engine  # noqa: F401, I001
-from . import bt4d_addon, operators  # noqa: E402
+from . import engine  # noqa: F401
+
+# isort: split
+from . import bt4d_addon, operators
 
 
 def register():

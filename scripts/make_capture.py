@@ -73,7 +73,10 @@ PHOTONS_PER_THRESHOLD = 1000.0  # Poisson shot noise on each frame's charge
 
 # ----------------------------------------------------------------------------- motion
 
-def object_poses(t: float, speed: float = 1.0) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
+Vec3 = tuple[float, float, float]
+
+
+def object_poses(t: float, speed: float = 1.0) -> dict[str, tuple[Vec3, Vec3]]:
     """World location and XYZ Euler rotation (radians) of each moving object at time t (s);
     ``speed`` scales every motion (the paths stay the same, traversed ``speed`` times faster)."""
     t = t * speed
@@ -288,7 +291,8 @@ def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
         raise RuntimeError(f"Cycles did not write {path}")
 
 
-def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"), stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"),
+                    stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The scene points seen by each pixel (every ``stride``-th) of the stereo pair at the
     current time, coloured from that camera's rendered frame 0: what a dense two-view
     pointmap (DUSt3R, which the paper uses and we cannot run offline) estimates, here exact.
@@ -447,8 +451,8 @@ def main(argv=None) -> int:
         log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
             f"{spike_cam['intr'].width}x{spike_cam['intr'].height}")
 
-    from engine.spike.simulate import make_gain_map, simulate_spikes
     from engine.io.spikes import write_spikes
+    from engine.spike.simulate import make_gain_map, simulate_spikes
 
     h, w = light.shape[1:]
     gain = make_gain_map(h, w, GAIN_STD, args.seed + 1)

@@ -11,9 +11,8 @@ import textwrap
 import tomllib
 import zipfile
 
-import pytest
-
 import blender_util
+import pytest
 from blender_util import REPO_ROOT
 
 

@@ -173,7 +173,8 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
                           eval_every_s=1, overrides={"max_gaussians": 500}, micro=False, progress=False,
                           train_fn=recording_train, flicker=False, log=None)
     assert seen["fast-freeze"][0]["freeze_static"] is True and seen["fast-cull"][0]["cull_frustum"] is True
-    assert seen["fast-early_stop"][0]["early_stop"] is True and seen["fast-early_stop"][0]["early_stop_proxy_frames"] == 4
+    early = seen["fast-early_stop"][0]
+    assert early["early_stop"] is True and early["early_stop_proxy_frames"] == 4
     assert not any(k in seen["fast-full"][0] for k in ("freeze_static", "early_stop", "cull_frustum"))
     assert seen["fast-rgb_only"][1] is True and all(ov["max_gaussians"] == 500 for ov, _ in seen.values())
     by = {r.variant: r for r in res["results"]}

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 import engine
-from engine.io import images
-from engine.io.capture import Capture, load_capture
-from engine.io.points import load_points, write_points
 from engine.cameras import View
 from engine.errors import CaptureError
+from engine.io import images
+from engine.io.capture import Capture, load_capture
 from engine.io.images import write_exr, write_png
+from engine.io.points import load_points, write_points
 from engine.io.spikes import SpikeStream, write_spikes
 
 W, H = 8, 6

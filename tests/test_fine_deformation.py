@@ -6,11 +6,10 @@ import pytest
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.scene.fine_deformation import (FineDeformation, count_parameters, project_to_grid,
-                                     sinusoidal_encoding)
+from engine.io.spikes import SpikeStream, write_spikes
+from engine.scene.fine_deformation import FineDeformation, count_parameters, project_to_grid, sinusoidal_encoding
 from engine.spike.features import SpikeWindowCache, bracket, window_textures
 from engine.spike.simulate import simulate_spikes
-from engine.io.spikes import SpikeStream, write_spikes
 
 
 def _moving_bar(h=24, w=32, n=600, rate=20000.0):

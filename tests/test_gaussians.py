@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from engine.scene.gaussians import (GaussianModel, eval_sh, knn_mean_distance, num_sh_bases, rgb_to_sh,
-                              sh_to_rgb)
+from engine.scene.gaussians import GaussianModel, eval_sh, knn_mean_distance, num_sh_bases, rgb_to_sh, sh_to_rgb
 from engine.train.presets import get_preset
 
 

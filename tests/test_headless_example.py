@@ -12,10 +12,9 @@ import shutil
 import subprocess
 import sys
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 import roundtrip_util
 from roundtrip_util import reconstructed, run_tmp  # noqa: F401  (fixtures)
 

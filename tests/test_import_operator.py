@@ -8,10 +8,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 

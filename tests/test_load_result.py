@@ -9,10 +9,9 @@ import subprocess
 import sys
 import textwrap
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 import roundtrip_util
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 

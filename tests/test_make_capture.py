@@ -2,15 +2,15 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from engine.io.capture import load_capture
 from engine.colour import luminance, srgb_to_linear
+from engine.io.capture import load_capture
 from engine.io.images import read_image
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

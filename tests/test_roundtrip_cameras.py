@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import json
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 
@@ -22,7 +21,6 @@ def empty_scene():
 
 def _blender_project(obj, scene, pts):
     """Project with Blender's own camera matrix (calc_matrix_camera) -> pixels from top-left."""
-    from mathutils import Vector
 
     W, H = bc.render_size(scene)
     r = scene.render

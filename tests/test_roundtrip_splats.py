@@ -3,10 +3,9 @@ stand-in Scene4D (tests/roundtrip_fakes.py): interpolation in time, a headless C
 render, and a saved + reopened .blend that renders the same."""
 from __future__ import annotations
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 

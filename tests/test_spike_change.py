@@ -2,18 +2,16 @@
 from __future__ import annotations
 
 import shutil
-import types
 
 import numpy as np
 import pytest
 import torch
+from test_spike_guidance import _ctx, _fake_trainer
 
 from engine.io.capture import load_capture
+from engine.io.spikes import write_spikes
 from engine.spike.change import block_change_statistic, detect_change
 from engine.spike.simulate import simulate_spikes
-from engine.io.spikes import write_spikes
-
-from test_spike_guidance import _ctx, _fake_trainer
 
 
 def _rates(spikes: np.ndarray, intervals: int, k_sub: int = 8) -> list[np.ndarray]:

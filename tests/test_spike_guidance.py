@@ -8,11 +8,17 @@ import pytest
 import torch
 
 from engine.io.capture import load_capture
-from engine.scene.model import view_tensors
 from engine.scene.fine_deformation import SpikeFineEncoder
+from engine.scene.model import view_tensors
 from engine.train.presets import TrainConfig
-from engine.train.spike_guidance import (SpikeGuidance, _block_term, _spike_term, make_fine_encoder, scaled_view,
-                                         spike_stream_info)
+from engine.train.spike_guidance import (
+    SpikeGuidance,
+    _block_term,
+    _spike_term,
+    make_fine_encoder,
+    scaled_view,
+    spike_stream_info,
+)
 
 
 class _FakeModel(torch.nn.Module):
@@ -176,8 +182,8 @@ _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init
 @needs_trainer_integration
 def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_path):
     from engine.scene.model import load_run
-    from engine.train.presets import get_preset
     from engine.train import train
+    from engine.train.presets import get_preset
     from engine.train.trainer import Trainer
 
     tr = Trainer(cap, get_preset("fast", _TINY), device="cpu")

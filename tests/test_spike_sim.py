@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import engine
-from engine.spike.simulate import iter_spike_chunks, make_gain_map, simulate_spikes, simulate_spikes_to_file, tfi, tfp
 from engine.io.spikes import read_spikes
+from engine.spike.simulate import iter_spike_chunks, make_gain_map, simulate_spikes, simulate_spikes_to_file, tfi, tfp
 
 
 def test_lazy_exports():

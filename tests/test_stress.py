@@ -70,8 +70,8 @@ def test_nonfinite_capture_records_rejected_naming_the_file(tmp_path, name):
 
 
 def test_nan_pixels_rejected_naming_the_image(tmp_path):
-    from engine.io.capture import load_capture
     from engine.errors import CaptureError
+    from engine.io.capture import load_capture
 
     img = np.full((8, 8, 3), 0.5, np.float32)
     img[2, 3, 1] = np.nan

@@ -8,16 +8,17 @@ import numpy as np
 import pytest
 import torch
 
-from engine.io.checkpoint import load_checkpoint, read_run_json
 from engine.evaluate.heldout import evaluate
-from engine.train.presets import PRESETS, TrainConfig, get_preset
-from tools.synthetic import write_synthetic_capture
+from engine.io.checkpoint import load_checkpoint, read_run_json
 from engine.train import budget as budget_mod
 from engine.train import run as run_mod
 from engine.train import train
 from engine.train import trainer as trainer_mod
 from engine.train.budget import steps_for_budget
 from engine.train.losses import LossTerm
+from engine.train.presets import PRESETS, TrainConfig, get_preset
+from tools.synthetic import write_synthetic_capture
+
 TINY = dict(width=32, height=24, n_rgb=3, eval_fps=60.0)
 
 
@@ -400,7 +401,8 @@ def test_early_stop_stops_on_a_plateau_with_eval_or_train_proxy(tiny_capture, tm
 
 
 def test_cull_frustum_prunes_gaussians_behind_every_camera(tiny_capture, tmp_path, monkeypatch):
-    behind = np.array([[0.0, -10.0, 0.0], [0.5, -12.0, 0.3], [-0.4, -9.0, -0.2]], np.float32)  # cameras sit at y=-1.5 facing +y
+    # the cameras sit at y=-1.5 facing +y
+    behind = np.array([[0.0, -10.0, 0.0], [0.5, -12.0, 0.3], [-0.4, -9.0, -0.2]], np.float32)
     orig = trainer_mod.initial_points
 
     def with_behind(*a, **k):

@@ -6,15 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.io.capture import load_capture
+from engine.cameras import Intrinsics, look_at_c2w
 from engine.errors import CaptureError, RunError
-from engine.geometry.init_points import cameras_focus, initial_points, random_points, stereo_points
 from engine.export.npz import export_npz, read_export
-from engine.scene.model import load_run
-from tools.synthetic import synthetic_scene, write_synthetic_capture
 from engine.export.render_views import orbit_views, read_camera_file, views_to_records, write_renders
+from engine.geometry.init_points import cameras_focus, initial_points, random_points, stereo_points
+from engine.io.capture import load_capture
+from engine.scene.model import load_run
 from engine.train import train
+from tools.synthetic import synthetic_scene, write_synthetic_capture
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,8 @@ def test_scene_gaussians_at_and_render(trained):
     views = [c.view(c.eval_frames[0]), c.view(c.frames[0])]
     out = scene.render(views)
     assert len(out) == 2
-    assert out[0]["rgb"].shape == (24, 32, 3) and out[0]["alpha"].shape == (24, 32) and out[0]["depth"].shape == (24, 32)
+    assert out[0]["rgb"].shape == (24, 32, 3)
+    assert out[0]["alpha"].shape == (24, 32) and out[0]["depth"].shape == (24, 32)
     # the wall sits 3.5 m in front of the cameras: covered pixels have depth near it
     d = out[1]["depth"][out[1]["alpha"] > 0.9]
     assert d.size and 2.0 < np.median(d) < 4.5
@@ -98,7 +99,8 @@ def test_camera_files_both_schemas(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"frames": [{"camera": "nope", "transform_matrix": c2w}]}))
     with pytest.raises(CaptureError, match="unknown camera"):
         read_camera_file(tmp_path / "bad.json")
-    (tmp_path / "bad2.json").write_text(json.dumps({"frames": [{"w": 4, "h": 4, "fl_x": 1, "transform_matrix": [[1]]}]}))
+    bad = {"frames": [{"w": 4, "h": 4, "fl_x": 1, "transform_matrix": [[1]]}]}
+    (tmp_path / "bad2.json").write_text(json.dumps(bad))
     with pytest.raises(CaptureError, match="4x4"):
         read_camera_file(tmp_path / "bad2.json")
     with pytest.raises(CaptureError, match="does not exist"):
@@ -131,7 +133,8 @@ def test_write_renders_png_and_exr(trained, tmp_path):
     ch = read_exr_channels(paths[0])
     assert set("RGBAZ") <= set(ch)
     np.testing.assert_allclose(ch["A"], ref["alpha"], atol=1e-6)
-    lin = srgb_to_linear(np.clip(ref["rgb"] / np.maximum(ref["alpha"], 1e-6)[..., None], 0, 1)) * ref["alpha"][..., None]
+    straight = np.clip(ref["rgb"] / np.maximum(ref["alpha"], 1e-6)[..., None], 0, 1)
+    lin = srgb_to_linear(straight) * ref["alpha"][..., None]
     np.testing.assert_allclose(ch["R"][ok], lin[..., 0][ok], atol=1e-4)
     np.testing.assert_allclose(ch["Z"][ok], ref["depth"][ok], rtol=1e-5)
 

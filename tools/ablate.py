@@ -140,7 +140,8 @@ def write_csv(rows: list[dict], path) -> Path:
 
 
 def plot(rows: list[dict], path, title: str = "") -> Path:
-    metrics = [("psnr", "PSNR (all eval)"), ("psnr_interframe", "PSNR (inter-frame)"), ("psnr_dynamic", "PSNR (dynamic px)")]
+    metrics = [("psnr", "PSNR (all eval)"), ("psnr_interframe", "PSNR (inter-frame)"),
+               ("psnr_dynamic", "PSNR (dynamic px)")]
     fig, axes = report.plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
     names = [r["variant"] for r in rows]
     colours = ["#888888" if n.startswith("rgb") else "#d62728" if n == "full" else "#1f77b4" for n in names]

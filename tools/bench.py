@@ -443,7 +443,8 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
             notes.append(f"frozen {fz['fraction_frozen'] * 100:.0f}% at end, woken {fz['woken']}")
         lines.append(
             f"| {r.preset} | {r.variant} | {r.summary.get('step')}/{r.summary.get('total_steps')} | "
-            f"{fmt(r.summary.get('train_seconds'), 1)} | {fmt(r.extra.get('cpu_s'), 1)} | {fmt(fin.get('psnr'))} | {fmt(fin.get('ssim'), 4)} | "
+            f"{fmt(r.summary.get('train_seconds'), 1)} | {fmt(r.extra.get('cpu_s'), 1)} | "
+            f"{fmt(fin.get('psnr'))} | {fmt(fin.get('ssim'), 4)} | "
             f"{fmt(fin.get('psnr_interframe'))} | {fmt(fin.get('psnr_dynamic'))} | {fin.get('num_gaussians', '-')} | "
             f"{fmt(time_to_within(r.curve, fin.get('psnr') or float('nan')), 1)} | {fmt(r.peak_rss_mb, 0)} | "
             f"{fmt(fl.get('flicker_255'), 3)} | {'; '.join(notes)} |")
@@ -461,12 +462,14 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
         fz = micro.get("freeze_step")
         if isinstance(fz, dict) and "speedup" in fz:
             lines.append(f"- deformation + raster fwd+bwd of one train view with {fz['frozen_fraction'] * 100:.0f}% of "
-                         f"{fz['gaussians']} Gaussians frozen: {fz['step_ms_frozen']:.0f} ms vs {fz['step_ms_unfrozen']:.0f} ms "
+                         f"{fz['gaussians']} Gaussians frozen: {fz['step_ms_frozen']:.0f} ms vs "
+                         f"{fz['step_ms_unfrozen']:.0f} ms "
                          f"unfrozen -> **{fz['speedup']:.2f}x** (interleaved A/B medians)")
         de = micro.get("decode")
         if isinstance(de, dict) and "speedup_vs_community" in de:
-            lines.append(f"- spike decode, {de['frames']} frames {de['size']}: read_spikes {de['read_spikes_s'] * 1e3:.1f} ms "
-                         f"({de['mb_per_s']:.0f} MB/s) -> **{de['speedup_vs_community']:.1f}x** the community per-frame "
+            lines.append(f"- spike decode, {de['frames']} frames {de['size']}: "
+                         f"read_spikes {de['read_spikes_s'] * 1e3:.1f} ms ({de['mb_per_s']:.0f} MB/s) -> "
+                         f"**{de['speedup_vs_community']:.1f}x** the community per-frame "
                          f"loader, **{de['speedup_vs_python_loop']:.0f}x** the per-byte Python loop "
                          f"(identical output: {de['identical']})")
         elif de:

@@ -17,11 +17,13 @@ HELP = "error against wall time per preset (+ RGB-only baseline, skip features) 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", help="capture folder (transforms.json) with eval frames")
     parser.add_argument("--out", required=True, help="output folder (one run per configuration + reports)")
-    parser.add_argument("--seconds", type=float, default=None, help="training budget per run (default 120; 25 with --quick)")
+    parser.add_argument("--seconds", type=float, default=None,
+                        help="training budget per run (default 120; 25 with --quick)")
     parser.add_argument("--iterations", type=int, default=None,
                         help="a fixed step count per run instead of a wall-clock budget (same work for every "
                              "variant: compares the time the skip features save)")
-    parser.add_argument("--presets", default=None, help="comma-separated presets (default fast,balanced; fast with --quick)")
+    parser.add_argument("--presets", default=None,
+                        help="comma-separated presets (default fast,balanced; fast with --quick)")
     parser.add_argument("--variants", default="full,rgb_only",
                         help="comma-separated: full, rgb_only, freeze, early_stop, cull (default full,rgb_only); "
                              "freeze / early_stop / cull are the trainer's switches freeze_static / early_stop / "

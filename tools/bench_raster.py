@@ -84,7 +84,10 @@ def time_cell(args, width, height, backend, repeats, sh_degree):
         t0 = time.perf_counter()
         fwd_bwd()
         tb.append(time.perf_counter() - t0)
-    med = lambda v: 1e3 * statistics.median(v) if v else float("nan")
+
+    def med(v):
+        return 1e3 * statistics.median(v) if v else float("nan")
+
     return med(tf), med(tb), first
 
 

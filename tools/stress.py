@@ -56,9 +56,21 @@ from typing import Callable
 
 from tqdm import tqdm
 
-from .stress_cases import (CaseResult, case_degenerate_cov, case_empty_view, case_extent_huge, case_extent_tiny,
-                           case_long_time, case_near_plane, case_opacity_saturated, case_opacity_threshold,
-                           case_opacity_zero, case_scale_huge, case_scale_range, case_scale_tiny)
+from .stress_cases import (
+    CaseResult,
+    case_degenerate_cov,
+    case_empty_view,
+    case_extent_huge,
+    case_extent_tiny,
+    case_long_time,
+    case_near_plane,
+    case_opacity_saturated,
+    case_opacity_threshold,
+    case_opacity_zero,
+    case_scale_huge,
+    case_scale_range,
+    case_scale_tiny,
+)
 from .stress_checks import case_bad_inputs, case_fp32_vs_fp64, case_spikes_extreme, case_trainer
 
 CASES: dict[str, Callable] = {

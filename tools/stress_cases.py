@@ -105,7 +105,8 @@ def random_params(n: int, extent: float = 1.0, *, seed: int = 0, log_scale: floa
     log_scales = torch.full((n, 3), float(log_scale), dtype=torch.float64) \
         + 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64)
     quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
-    opac = torch.full((n,), float(opacity_logit), dtype=torch.float64) + 0.5 * torch.randn(n, generator=g, dtype=torch.float64)
+    opac = (torch.full((n,), float(opacity_logit), dtype=torch.float64)
+            + 0.5 * torch.randn(n, generator=g, dtype=torch.float64))
     colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
     return {k: v.to(dtype) for k, v in zip(PARAM_ORDER, (means, log_scales, quats, opac, colors))}
 

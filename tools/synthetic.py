@@ -78,8 +78,8 @@ def write_synthetic_capture(out, *, width: int = 64, height: int = 48, rgb_fps: 
     eyes["eval0"] = np.array([0.05, -1.45, 0.45])
     poses = {c: look_at_c2w(e, target) for c, e in eyes.items()}
     duration = (n_rgb - 1) / rgb_fps
-    data = {"version": 1, "cameras": {**{c: {**k, "role": "train"} for c in train_names}, "eval0": {**k, "role": "eval"}},
-            "frames": [], "eval_frames": []}
+    cameras = {**{c: {**k, "role": "train"} for c in train_names}, "eval0": {**k, "role": "eval"}}
+    data = {"version": 1, "cameras": cameras, "frames": [], "eval_frames": []}
     for cam in train_names:
         for i in range(n_rgb):
             t = i / rgb_fps

@@ -48,11 +48,11 @@ def main(args) -> int:
 
     from tqdm import tqdm
 
-    from ..io.capture import load_capture
     from ..errors import CaptureError, RunError
     from ..evaluate.heldout import evaluate
-    from ..scene.model import load_run
     from ..export.render_views import write_renders
+    from ..io.capture import load_capture
+    from ..scene.model import load_run
     from ..train import train
     from .train import parse_overrides
 

@@ -17,8 +17,8 @@ def add_arguments(p) -> None:
 
 def main(args) -> int:
     from ..errors import CaptureError, RunError
-    from ..scene.model import load_run
     from ..export.render_views import read_camera_file, write_renders
+    from ..scene.model import load_run
 
     try:
         scene = load_run(args.run, device=args.device)

@@ -28,9 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from ..io.capture import load_capture
     from ..colour import linear_to_srgb
     from ..errors import CaptureError
+    from ..io.capture import load_capture
     from ..io.images import write_exr, write_png
 
     try:

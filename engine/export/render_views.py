@@ -29,8 +29,8 @@ import numpy as np
 from ..cameras import Intrinsics, View, look_at_c2w
 from ..colour import srgb_to_linear
 from ..errors import CaptureError
-from ..io.records import parse_intrinsics
 from ..io.images import write_exr, write_png
+from ..io.records import parse_intrinsics
 
 # Z of EXR pixels where nothing was hit (alpha <= 1e-4): Blender's Z pass uses 1e10 too.
 Z_BACKGROUND = 1e10

@@ -19,8 +19,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..io.points import load_points
-from .stereo import STEREO_DEFAULTS, _frames_of, _pixel_rays, _project, fill_depth, rgb_cameras, stereo_depths, \
-    stereo_pair
+from .stereo import (
+    STEREO_DEFAULTS,
+    _backproject,
+    _depth_range,
+    _frames_of,
+    _project,
+    fill_depth,
+    rgb_cameras,
+    stereo_depths,
+    stereo_pair,
+)
 
 
 @dataclass
@@ -140,7 +149,9 @@ def random_points(capture, n: int, *, depth_range=None, seed: int = 0) -> InitPo
         c2w = np.linalg.inv(v.viewmat)
         xyz.append(cam @ c2w[:3, :3].T + c2w[:3, 3])
         h, wd = img.shape[:2]
-        rgb.append(img[np.clip((w * h / k.height).astype(int), 0, h - 1), np.clip((u * wd / k.width).astype(int), 0, wd - 1), :3])
+        rows = np.clip((w * h / k.height).astype(int), 0, h - 1)
+        cols = np.clip((u * wd / k.width).astype(int), 0, wd - 1)
+        rgb.append(img[rows, cols, :3])
     xyz = np.concatenate(xyz)[:n].astype(np.float32)
     rgb = np.concatenate(rgb)[:n].astype(np.float32)
     return InitPoints(xyz, rgb, "random", {"points": int(len(xyz)), "near": float(near), "far": float(far)})

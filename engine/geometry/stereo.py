@@ -92,7 +92,9 @@ def plane_sweep(img_ref, view_ref, img_src, view_src, depths, radius: int = 3):
     gy = torch.zeros_like(g_ref)
     gx[..., 1:-1] = (g_ref[..., 2:] - g_ref[..., :-2]) / 2
     gy[..., 1:-1, :] = (g_ref[..., 2:, :] - g_ref[..., :-2, :]) / 2
-    ge = gx * torch.from_numpy(e[:, 0].reshape(H, W).astype(np.float32)) + gy * torch.from_numpy(e[:, 1].reshape(H, W).astype(np.float32))
+    ex = torch.from_numpy(e[:, 0].reshape(H, W).astype(np.float32))
+    ey = torch.from_numpy(e[:, 1].reshape(H, W).astype(np.float32))
+    ge = gx * ex + gy * ey
     epi_texture = _box(ge * ge, radius).sqrt()[0, 0]
     ncc = torch.full((len(depths), H, W), -1.0)
     for i, d in enumerate(depths):

@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import images
 from ..cameras import Intrinsics, View
 from ..colour import linear_to_srgb
 from ..errors import CaptureError
+from . import images
 from .points import load_points
 from .records import CheckContext, check_intrinsics, read_json, resolve_image
 from .spikes import SpikeStream, count_frames, frame_bytes

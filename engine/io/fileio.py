@@ -10,7 +10,7 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, BinaryIO, Iterator
+from typing import BinaryIO, Callable, Iterator
 
 
 @contextmanager

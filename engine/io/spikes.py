@@ -34,7 +34,8 @@ def frame_bytes(height: int, width: int, head_cols: int = 0) -> int:
     if height <= 0 or width <= 0 or head_cols < 0:
         raise ValueError(f"bad spike frame size {width}x{height} (head_cols={head_cols})")
     if bits % 8:
-        raise ValueError(f"a spike frame of {height} x {width + head_cols} = {bits} bits is not a whole number of bytes")
+        raise ValueError(f"a spike frame of {height} x {width + head_cols} = {bits} bits "
+                         "is not a whole number of bytes")
     return bits // 8
 
 
@@ -244,7 +245,8 @@ class SpikeStream:
         if count is None:
             count = self.num_frames - start
         if start < 0 or count < 0 or start + count > self.num_frames:
-            raise CaptureError(self.path, f"frames {start}..{start + count - 1} requested; the stream has {self.num_frames}")
+            raise CaptureError(self.path,
+                               f"frames {start}..{start + count - 1} requested; the stream has {self.num_frames}")
         if count == 0:
             return np.zeros((0, self.height, self.width), dtype=np.uint8)
         fb = self._frame_bytes

@@ -163,7 +163,10 @@ class _Project(torch.autograd.Function):
         means, quats, scales = ctx.args[:3]
         N, C = means.shape[0], ctx.args[3].shape[0]
         dt = means.dtype
-        zeros = lambda shape, g: np.zeros(shape, dt) if g is None else _np(g).astype(dt, copy=False)
+
+        def zeros(shape, g):
+            return np.zeros(shape, dt) if g is None else _np(g).astype(dt, copy=False)
+
         v_means = np.zeros((N, 3), dt)
         v_quats = np.zeros((N, 4), dt)
         v_scales = np.zeros((N, 3), dt)

@@ -208,7 +208,8 @@ class DeformationField(nn.Module):
             "means": means + self.pos_head(f) * self.pos_scale,
             "quats": quats + self.rot_head(f),
             "log_scales": log_scales + self.scale_head(f) if self.scale_head is not None else log_scales,
-            "opacity_logits": opacity_logits + self.opacity_head(f)[:, 0] if self.opacity_head is not None else opacity_logits,
+            "opacity_logits": (opacity_logits + self.opacity_head(f)[:, 0] if self.opacity_head is not None
+                               else opacity_logits),
             "color_delta": self.color_head(f) if self.color_head is not None else None,
         }
         return out
@@ -257,6 +258,7 @@ def make_field(cfg, bounds_min, bounds_max, time_range, frame_times, seed: int =
     """Build a field from a :class:`engine.presets.TrainConfig`."""
     return DeformationField(
         bounds_min, bounds_max, time_range, features=cfg.hex_features, resolution=cfg.hex_resolution,
-        multires=tuple(cfg.hex_multires), time_resolution=time_resolution_for(frame_times, cfg.time_resolution_per_frame),
+        multires=tuple(cfg.hex_multires),
+        time_resolution=time_resolution_for(frame_times, cfg.time_resolution_per_frame),
         width=cfg.mlp_width, depth=cfg.mlp_depth, deform_scale=cfg.deform_scale,
         deform_opacity=cfg.deform_opacity, deform_color=cfg.deform_color, seed=seed)

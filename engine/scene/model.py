@@ -16,11 +16,11 @@ import torch
 from torch import nn
 
 from ..cameras import View
+from ..errors import RunError
 from ..io.checkpoint import load_checkpoint, read_run_json
 from ..raster import rasterization
 from .deformation import DeformationField
-from ..errors import RunError
-from .gaussians import SH_C0, GaussianModel, num_sh_bases
+from .gaussians import GaussianModel, num_sh_bases
 
 
 def default_device(device=None) -> torch.device:

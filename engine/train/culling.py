@@ -10,7 +10,7 @@ from ..raster.projection import project_gaussians
 __all__ = ["FrustumCuller", "frustum_cull_mask"]
 
 
-def frustum_cull_mask(trainer: "Trainer", margin_px: float = 0.0, times=None) -> torch.Tensor:
+def frustum_cull_mask(trainer, margin_px: float = 0.0, times=None) -> torch.Tensor:
     """bool [N]: Gaussians invisible (radius 0: behind, beyond the image box, or below 1/255
     opacity) in every train view, at the canonical positions and -- once the deformation
     field exists -- at ``times`` (default: the train frame times) as well."""
@@ -53,7 +53,7 @@ class FrustumCuller:
         self.pruned = 0
         self.events: list[dict] = []
 
-    def __call__(self, trainer: "Trainer", step: int) -> int:
+    def __call__(self, trainer, step: int) -> int:
         g = trainer.model.gaussians
         mask = frustum_cull_mask(trainer)
         n = int(mask.sum())

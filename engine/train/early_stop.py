@@ -43,7 +43,7 @@ class EarlyStop:
         self._bad = 0
 
     @classmethod
-    def for_trainer(cls, trainer: "Trainer") -> "EarlyStop":
+    def for_trainer(cls, trainer) -> "EarlyStop":
         cfg, cap = trainer.cfg, trainer.capture
         n = max(1, int(cfg.early_stop_proxy_frames))
         evals = sorted(getattr(cap, "eval_frames", None) or [], key=lambda f: (f.camera, f.time))
@@ -83,7 +83,7 @@ class EarlyStop:
         model.train(was)
         return float(np.mean(ps)) if ps else float("nan")
 
-    def update(self, trainer: "Trainer", done: int) -> bool:
+    def update(self, trainer, done: int) -> bool:
         """After ``done`` completed steps: evaluate when due; True when training should stop."""
         if self.stopped_at is not None:
             return True

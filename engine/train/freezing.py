@@ -28,7 +28,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-
 # ----------------------------------------------------------------------------- state
 
 class Freezer:
@@ -478,7 +477,8 @@ class TrainFreezer:
                 "num_gaussians": 0 if f is None else f.num_gaussians,
                 "fraction_frozen": 0.0 if f is None else round(f.fraction_frozen, 4),
                 "woken": self.woken,
-                "mean_fraction_frozen": round(float(np.mean([r["fraction"] for r in self.log])), 4) if self.log else 0.0}
+                "mean_fraction_frozen": (round(float(np.mean([r["fraction"] for r in self.log])), 4) if self.log
+                                         else 0.0)}
 
 
 def frozen_deformation_cost(num_gaussians: int, num_frozen: int) -> float:
@@ -486,5 +486,5 @@ def frozen_deformation_cost(num_gaussians: int, num_frozen: int) -> float:
     return (num_gaussians - num_frozen) / max(1, num_gaussians) if num_gaussians else 0.0
 
 
-__all__ = ["Freezer", "TrainFreezer", "deformation_motion", "deformed_over_time", "bake_static", "residual_map", "residual_scores",
-           "abrupt_mask", "blur_box", "frozen_deformation_cost"]
+__all__ = ["Freezer", "TrainFreezer", "deformation_motion", "deformed_over_time", "bake_static", "residual_map",
+           "residual_scores", "abrupt_mask", "blur_box", "frozen_deformation_cost"]

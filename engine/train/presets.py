@@ -7,7 +7,7 @@ deterministically from it. ``overrides`` (a dict) patches fields by name.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 
 @dataclass
@@ -110,9 +110,11 @@ class TrainConfig:
     between_colocated_p: float = 0.75  # share of between renders at the spike camera's view
     between_scale: float = 0.5  # between-frame renders at this fraction of the RGB resolution
     spike_time_resolution_per_frame: float = 6.0  # HexPlane time cells per RGB frame with guidance
-    spike_time_smooth_weight: float = 0.1  # time_smooth_weight with guidance (its finer time cells see one view between frames)
+    # time_smooth_weight with guidance (its finer time cells see one view between frames)
+    spike_time_smooth_weight: float = 0.1
     between_curriculum: bool = True  # between-frame instants only up to the time curriculum's front
-    between_motion_only: bool = False  # between-frame losses train the deformation field only (measured: worse between frames)
+    # between-frame losses train the deformation field only (measured: worse between frames)
+    between_motion_only: bool = False
     spike_static_prior: bool = True  # Gaussians where the spike view never changes skip the deformation field
     spike_skip_static: bool = True  # no between-frame renders in spike windows without change (engine.spike_change)
     fine_change_gate: bool = True  # fine feature only for Gaussians where / windows when the spike view changes

@@ -203,7 +203,8 @@ class Trainer:
         pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
                              seed=self.seed, fill_stride=cfg.init_fill_stride)
         self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
-        centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3] for it in self.items])
+        centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3]
+                            for it in self.items])
         self.extent = scene_extent(pts.xyz, centers)
         g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=self.device)
         g.setup_optimizer(cfg, self.extent)
@@ -349,7 +350,8 @@ class Trainer:
             gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
             info = g.densify_and_prune(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
                                        min_opacity=cfg.prune_opacity, max_world_scale=cfg.prune_big_world,
-                                       max_gaussians=cfg.max_gaussians, generator=gen if self.device.type == "cpu" else None)
+                                       max_gaussians=cfg.max_gaussians,
+                                       generator=gen if self.device.type == "cpu" else None)
         if cfg.opacity_reset_every and step > 0 and step % cfg.opacity_reset_every == 0 and step < hi:
             g.reset_opacity()
         if self.cull is not None and (step == 0 or step == self.static_steps or info):
