@@ -17,7 +17,7 @@ view, lower resolution, 20 kHz), ``eval0`` held out, above and between the pair,
 ``--eval-fps``. RGB/eval frames are 8-bit sRGB PNGs rendered with the Standard view
 transform (plain sRGB encoding, no tone curve). The spike stream is simulated from
 linear light rendered at the spike resolution at ``--light-hz``:
-``engine.spike_sim.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
+``engine.spike.simulate.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
 gain map and a little dark current; linear white (1.0) fires every ``1/light_scale``
 frames. No ``points.ply`` is written, so the engine's stereo initialisation is exercised.
 """

@@ -1,4 +1,4 @@
-"""A tiny stand-in for engine.model.Scene4D: Gaussians moving linearly in time, rendered by
+"""A tiny stand-in for engine.scene.model.Scene4D: Gaussians moving linearly in time, rendered by
 an obviously-correct numpy EWA splatter (3DGS rules: 0.3 px^2 dilation, pixel centres at
 +0.5, alpha capped at 0.99, alpha < 1/255 skipped, front-to-back by depth)."""
 from __future__ import annotations

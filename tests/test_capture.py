@@ -137,7 +137,7 @@ def test_loading_reads_no_pixels(tmp_path, monkeypatch):
     cap = load_capture(tmp_path)
     assert len(cap.frames) == 6
     with pytest.raises(AssertionError):
-        cap.frames[0].load_rgb()  # the loader really goes through engine.images
+        cap.frames[0].load_rgb()  # the loader really goes through engine.io.images
 
 
 def test_many_frames_load_without_reading(tmp_path, monkeypatch):

@@ -62,6 +62,39 @@ def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
     assert "none.json" in capsys.readouterr().err
 
 
+def test_render_names_never_collide(run_dir, demo_capture, tmp_path, capsys):
+    """rgb0/000000.png and rgb1/000000.png of the capture both have the stem 000000: every
+    view still gets its own file (camera-prefixed), and the count printed is the count on disk."""
+    data = json.loads((demo_capture / "transforms.json").read_text())
+    n = len(data["frames"])
+    stems = [p.rsplit("/", 1)[-1] for p in (f["file_path"] for f in data["frames"])]
+    assert len(set(stems)) < n  # the capture really has colliding file names
+    out = tmp_path / "all"
+    assert main(["render", str(run_dir), "--cameras", str(demo_capture / "transforms.json"), "--out", str(out),
+                 "--format", "png"]) == 0
+    files = sorted(p.name for p in out.glob("*.png"))
+    assert len(files) == n and f"wrote {n} PNG file(s)" in capsys.readouterr().out
+    assert "rgb0_000000.png" in files and "rgb1_000000.png" in files
+
+
+def test_output_names_disambiguate_or_refuse():
+    from engine.cameras import Intrinsics, View
+    from engine.export.render_views import output_names
+
+    k = Intrinsics(4, 4, 4.0, 4.0, 2.0, 2.0)
+    c2w = np.eye(4)
+    a = View(k, c2w, 0.0, "000000", {"camera": "rgb0"})
+    b = View(k, c2w, 0.0, "000000", {"camera": "rgb1"})
+    c = View(k, c2w, 0.0, "000001", {"camera": "rgb1"})
+    assert output_names([a, c]) == ["000000", "000001"]           # no collision: names as given
+    assert output_names([a, b, c]) == ["rgb0_000000", "rgb1_000000", "rgb1_000001"]
+    d = View(k, c2w, 0.0, "x", {"file_path": "left/x.png"})
+    e = View(k, c2w, 0.0, "x", {"file_path": "right/x.png"})
+    assert output_names([d, e]) == ["left_x", "right_x"]           # no camera: the file's folder
+    with pytest.raises(ValueError, match="written twice: rgb0_000000"):
+        output_names([a, a])
+
+
 def test_export_npz(run_dir, tmp_path):
     from engine.export.npz import read_export
     from engine.scene.model import load_run

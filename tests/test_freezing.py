@@ -1,4 +1,4 @@
-"""engine.freezing: CPOStream-style prediction (freeze after K quiet checks) and observation
+"""engine.train.freezing: CPOStream-style prediction (freeze after K quiet checks) and observation
 (wake under a residual), densification bookkeeping, motion of a deformation field, flicker."""
 from __future__ import annotations
 
@@ -181,7 +181,7 @@ def test_static_flicker_zero_for_constant_positive_for_noise_and_ignores_motion(
 
 
 def _fake_trainer(n=40):
-    """What TrainFreezer reads from engine.train.Trainer: model, static_steps, total_steps,
+    """What TrainFreezer reads from engine.train.trainer.Trainer: model, static_steps, total_steps,
     frame_times and items (view tensors with a camera name)."""
     from types import SimpleNamespace
 

@@ -1,4 +1,4 @@
-"""Skipping spike windows with no change (engine.spike_change) and the fine-feature gate."""
+"""Skipping spike windows with no change (engine.spike.change) and the fine-feature gate."""
 from __future__ import annotations
 
 import shutil

@@ -172,7 +172,7 @@ def _integrated() -> bool:
 
 
 needs_trainer_integration = pytest.mark.skipif(not _integrated(), reason="spike guidance not wired into "
-                                               "engine.train / engine.presets yet")
+                                               "engine.train / engine.train.presets yet")
 
 _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init_random_points": 100,
          "densify_from": 2.0, "densify_until": 2.0, "fine_d_model": 16, "fine_channels": 8, "fine_k_sub": 4,

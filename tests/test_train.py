@@ -333,7 +333,7 @@ def test_loss_terms_block_and_stereo_depth():
     assert "stereo_depth" in [t.name for t in default_loss_terms(get_preset("fast", {"lambda_depth": 0.1}))]
 
 
-# ------------------------------------------------------------------------------- skipping (issue 6)
+# ------------------------------------------------------------------------------- skipping
 FREEZE = {"freeze_static": True, "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 10, "freeze_k_checks": 2}
 # learning rates ~0 and no densification: nothing changes, the proxy PSNR is a plateau
 FROZEN_LRS = {k: 1e-12 for k in ("lr_means", "lr_means_final", "lr_scales", "lr_quats", "lr_opacities", "lr_sh_dc",

@@ -1,4 +1,4 @@
-"""Trained-run API (engine.model), camera files and renders (engine.render_views), init points."""
+"""Trained-run API (engine.scene.model), camera files and renders (engine.export.render_views), init points."""
 from __future__ import annotations
 
 import json

@@ -7,8 +7,8 @@ Design (documented here because the numbers depend on it):
   Variants: ``full`` (the method as configured, spike terms when the spike branch is
   registered), ``rgb_only`` (the RGB-only baseline), and the skip switches of the trainer
   (:data:`VARIANT_OVERRIDES`, ``TrainConfig``): ``freeze`` (``freeze_static``,
-  :class:`engine.freezing.TrainFreezer`), ``early_stop`` (``early_stop``: stop when a
-  held-out proxy stops improving, :class:`engine.train.EarlyStop`) and ``cull``
+  :class:`engine.train.freezing.TrainFreezer`), ``early_stop`` (``early_stop``: stop when a
+  held-out proxy stops improving, :class:`engine.train.early_stop.EarlyStop`) and ``cull``
   (``cull_frustum``: prune Gaussians outside every train frustum).
 * **Curve samples are periodic checkpoints evaluated afterwards**: the run's
   ``checkpoint_every_s`` is set to ``eval_every_s``; every time the trainer writes a new
@@ -73,7 +73,7 @@ from .bench_raster import make_scene, time_cell
 from .report import fmt
 
 VARIANTS = ("full", "rgb_only", "freeze", "early_stop", "cull")
-# the skip variants are switches of the trainer (engine.presets.TrainConfig, "skipping" block)
+# the skip variants are switches of the trainer (engine.train.presets.TrainConfig, "skipping" block)
 VARIANT_OVERRIDES = {"freeze": {"freeze_static": True}, "early_stop": {"early_stop": True},
                      "cull": {"cull_frustum": True}}
 CSV_FIELDS = ("preset", "variant", "wall_s", "step", "total_steps", "psnr", "ssim", "num_gaussians")

@@ -41,7 +41,7 @@ skipping what a scene does not need (all off by default; --set KEY=VALUE, e.g.
                           early_stop_min_delta, early_stop_every_fraction,
                           early_stop_min_deform_fraction, early_stop_proxy_frames
   cull_frustum=true       prune Gaussians outside every train camera's frustum
-Each field of engine.presets.TrainConfig can be set the same way."""
+Each field of engine.train.presets.TrainConfig can be set the same way."""
 
 
 def add_arguments(p) -> None:

@@ -149,7 +149,7 @@ class DeformationField(nn.Module):
         self.color_head = _head(width, 3) if deform_color else None
         self.fine_encoder: nn.Module | None = None  # Eq. 10 hook (spike branch)
         self.fine_spec: dict | None = None  # spec of a checkpoint's spike fine encoder
-        self.pending_fine_state: dict = {}  # fine_encoder weights found in a checkpoint (see engine.model)
+        self.pending_fine_state: dict = {}  # fine_encoder weights found in a checkpoint (see engine.scene.model)
 
     # ---- coordinates ------------------------------------------------------------------
     def normalize_xyz(self, xyz: torch.Tensor) -> torch.Tensor:
@@ -224,7 +224,7 @@ class DeformationField(nn.Module):
                "time_range": list(self.time_range), **{k: (list(v) if isinstance(v, tuple) else v)
                                                         for k, v in self.options.items()}}
         spec = getattr(self.fine_encoder, "spec", None) or self.fine_spec
-        if spec is not None:  # spike fine branch (engine.spike_guidance.SpikeFineEncoder)
+        if spec is not None:  # spike fine branch (engine.train.spike_guidance.SpikeFineEncoder)
             cfg["fine"] = spec
         return cfg
 
@@ -255,7 +255,7 @@ def time_resolution_for(frame_times, per_frame: float) -> int:
 
 
 def make_field(cfg, bounds_min, bounds_max, time_range, frame_times, seed: int = 0) -> DeformationField:
-    """Build a field from a :class:`engine.presets.TrainConfig`."""
+    """Build a field from a :class:`engine.train.presets.TrainConfig`."""
     return DeformationField(
         bounds_min, bounds_max, time_range, features=cfg.hex_features, resolution=cfg.hex_resolution,
         multires=tuple(cfg.hex_multires),

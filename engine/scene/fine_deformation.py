@@ -5,7 +5,7 @@
 
 * Texture features (Eq. 7): the paper uses a frozen pretrained ResNet50; no weights are
   available offline, so :class:`SpikeTextureEncoder` is a small conv net over the TFP/TFI
-  images of the K sub-windows (:mod:`engine.spike_features`). It is **trained jointly** by
+  images of the K sub-windows (:mod:`engine.spike.features`). It is **trained jointly** by
   default (``frozen_encoder=False``); ``frozen_encoder=True`` keeps it at its random
   initialisation (a fixed random-feature extractor), for the ablation.
 * Time encoding (Eq. 8): sinusoidal, on the time relative to the window,
@@ -134,7 +134,7 @@ class FineDeformation(nn.Module):
 
     def forward(self, window, t: float, *, grid: torch.Tensor | None = None,
                 visible: torch.Tensor | None = None) -> torch.Tensor:
-        """``window``: a :class:`engine.spike_features.SpikeWindow` (tex [K,2,h,w], times [K],
+        """``window``: a :class:`engine.spike.features.SpikeWindow` (tex [K,2,h,w], times [K],
         t1, t2); ``t``: query time (s). Per-Gaussian mode needs ``grid`` [N, 2] (from
         :func:`project_to_grid`) and optionally ``visible`` [N]."""
         tex = window.tex
@@ -231,7 +231,7 @@ class SpikeFineEncoder(nn.Module):
     def change_gate(self, cache: SpikeWindowCache, interval: int, grid: torch.Tensor,
                     visible: torch.Tensor) -> torch.Tensor:
         """[N] in [0, 1]: 0 in windows without change and for Gaussians whose canonical
-        position projects where the spike view never changes (engine.spike_change): static
+        position projects where the spike view never changes (engine.spike.change): static
         regions get no spike-driven motion. The map is the union over all windows because
         the canonical position of a moving object is where it is at t0, not at ``t``."""
         ch = cache.change(int(self.spec.get("change_block", 4)))

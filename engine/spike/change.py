@@ -3,7 +3,7 @@
 Between two RGB frames the spike stream only adds information where the light *changes*
 inside the window ``S[T1:T2]``; a static window is already described by the RGB frames at
 its ends. This module measures that change once per run from the per-sub-window spike
-rates the fine branch already computes (TFP images of :class:`engine.spike_features.
+rates the fine branch already computes (TFP images of :class:`engine.spike.features.
 SpikeWindowCache`, so no extra decoding):
 
 * per interval ``k`` and block (``block x block`` spike pixels), the change statistic is
@@ -18,7 +18,7 @@ SpikeWindowCache`, so no extra decoding):
 * a block has *changed* when ``d > max(z sigma, q median(d))``; an interval with no
   changed block is *static*.
 
-Uses (:mod:`engine.spike_guidance`): between-frame instants are drawn only in intervals
+Uses (:mod:`engine.train.spike_guidance`): between-frame instants are drawn only in intervals
 that changed (a capture that never changes costs nothing beyond RGB training), and the
 fine-scale feature is gated by the (dilated) change map at each Gaussian's projection, so
 static regions receive no spike-driven motion (and do not flicker).
@@ -134,7 +134,7 @@ def detect_change(window_rates, frames_per_window, *, block: int = 4, z: float =
 
 
 def change_from_cache(cache, *, block: int = 4, z: float = 6.0, q: float = 3.0) -> SpikeChange:
-    """:func:`detect_change` over every interval of a :class:`engine.spike_features.
+    """:func:`detect_change` over every interval of a :class:`engine.spike.features.
     SpikeWindowCache` (its TFP images / threshold are the sub-window rates)."""
     rates, frames = [], []
     times = cache.rgb_times

@@ -118,7 +118,7 @@ class SpikeWindowCache:
         return w
 
     def change(self, block: int = 4):
-        """:class:`engine.spike_change.SpikeChange` of every interval (computed once)."""
+        """:class:`engine.spike.change.SpikeChange` of every interval (computed once)."""
         ch = getattr(self, "_change", None)
         if ch is None or ch.block != int(block):
             ch = self._change = change_from_cache(self, block=int(block))

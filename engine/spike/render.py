@@ -10,7 +10,7 @@ response (Eq. 13). We use the linearised response
 where ``Y_lin`` is Rec.709 luminance of the linear (``srgb_to_linear``) render,
 ``scale`` is the photometric factor between RGB intensity and spike light, ``gain`` is
 the response non-uniformity map (mean 1) and ``dark_current`` the light-equivalent dark
-rate (the same response as :mod:`engine.spike_sim`; the clip at ``theta`` is the sensor's
+rate (the same response as :mod:`engine.spike.simulate`; the clip at ``theta`` is the sensor's
 one-spike-per-frame saturation). A pixel integrates light and fires when it reaches the
 threshold ``theta``, keeping the remainder (Eq. 2). Shot and quantisation noise are zero-mean; they enter only as an
 optional augmentation of the integrate-and-fire renderer.

@@ -6,7 +6,7 @@ frame loss as if they were real:
 
 * ``repeat``        — hold the previous frame (30 fps repeated 10x);
 * ``interp-linear`` — linear blend of the two neighbouring frames;
-* ``interp-flow``   — flow-based interpolation (:func:`engine.interpolation.flow_interpolate`,
+* ``interp-flow``   — flow-based interpolation (:func:`engine.train.interpolation.flow_interpolate`,
                       our RIFE / SimpleFlow stand-in);
 * ``spike2img``     — grey image from the spike stream (TFP over a short window, or TFI),
                       calibrated to linear luminance with the estimated sensor model,
@@ -17,7 +17,7 @@ frame loss as if they were real:
                       camera's co-located view gets spike frames.
 
 ``baseline_frames`` returns :class:`SyntheticFrame` records that quack like
-:class:`engine.capture.Frame` (``camera, time, c2w, intrinsics, role, load_rgb(), view()``);
+:class:`engine.io.capture.Frame` (``camera, time, c2w, intrinsics, role, load_rgb(), view()``);
 ``with_baseline`` returns a copy of the capture with them appended to ``frames``.
 """
 from __future__ import annotations
@@ -150,7 +150,7 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
 
     ``cameras``: training cameras to synthesise for (default: all training cameras; for
     ``spike2img``, the cameras co-located with a spike stream). ``sensor``: the spike
-    sensor model (default: :func:`engine.spike_render.estimate_sensor`)."""
+    sensor model (default: :func:`engine.spike.render.estimate_sensor`)."""
     if kind not in KINDS:
         raise ValueError(f"unknown baseline {kind!r}; choose from {', '.join(KINDS)}")
     by_cam: dict[str, list] = {}

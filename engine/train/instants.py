@@ -66,7 +66,7 @@ class InstantSampler:
 
     def restrict(self, keep) -> int:
         """Keep only the between-frame intervals ``k`` in ``keep`` (e.g. the spike windows
-        that show change, :mod:`engine.spike_change`). Returns how many were dropped."""
+        that show change, :mod:`engine.spike.change`). Returns how many were dropped."""
         keep = {int(k) for k in keep}
         before = len(self.intervals)
         self.intervals = np.asarray([k for k in self.intervals.tolist() if k in keep], dtype=np.int64)

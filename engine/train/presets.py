@@ -78,7 +78,7 @@ class TrainConfig:
     checkpoint_every_s: float = 30.0
     log_every: int = 1
 
-    # ---- skipping (issue 6): what a scene does not need; switches of engine.train ---------
+    # ---- skipping: what a scene does not need; switches of the trainer (engine.train) ---
     freeze_static: bool = False           # CPOStream freezing: Gaussians quiet for K checks skip the deformation field
     freeze_k_checks: int = 3              # K: consecutive quiet checks before a Gaussian freezes
     freeze_motion_eps_px: float = 0.3     # quiet: motion over the train frame times <= this (px, train cameras)
@@ -93,7 +93,7 @@ class TrainConfig:
     early_stop_proxy_frames: int = 4      # eval frames of the proxy (train frames when the capture has none)
     cull_frustum: bool = False            # prune Gaussians outside every train frustum (start, stage change, densify)
 
-    # ---- spike guidance (BulletTime4D, engine.spike_guidance; ignored with rgb_only) ------
+    # ---- spike guidance (BulletTime4D, engine.train.spike_guidance; ignored with rgb_only) ------
     fine_deformation: bool = True  # Eq. 6-10 fine spike feature added to the HexPlane feature
     fine_per_gaussian: bool = False  # per-Gaussian spike features (else one per instant)
     fine_frozen_encoder: bool = False  # conv texture encoder frozen at its random init
@@ -116,7 +116,7 @@ class TrainConfig:
     # between-frame losses train the deformation field only (measured: worse between frames)
     between_motion_only: bool = False
     spike_static_prior: bool = True  # Gaussians where the spike view never changes skip the deformation field
-    spike_skip_static: bool = True  # no between-frame renders in spike windows without change (engine.spike_change)
+    spike_skip_static: bool = True  # no between-frame renders in spike windows without change (engine.spike.change)
     fine_change_gate: bool = True  # fine feature only for Gaussians where / windows when the spike view changes
     spike_change_block: int = 4  # block size (spike pixels) of the change maps
     baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img

@@ -2,20 +2,20 @@
 
 * :class:`SpikeFineEncoder` is the deformation field's ``fine_encoder`` hook (Eq. 10):
   ``(xyz_normalised [N, 3], t) -> f_fine [N, feature_dim]`` from the spike window around
-  ``t`` (:mod:`engine.fine_deformation`). Its spec is JSON-able and stored in the field's
+  ``t`` (:mod:`engine.scene.fine_deformation`). Its spec is JSON-able and stored in the field's
   config, so a checkpoint rebuilds it; the spike windows are re-read lazily from the
   capture recorded in the spec (zeros when the capture or the window is unavailable, e.g.
   outside the stream).
 * :class:`SpikeGuidance` adds, at between-frame instants ``t in (T1, T2)``:
   - the spike loss (Eq. 17) at the spike camera's co-located RGB view: the render at ``t``
-    through the spike camera model (:mod:`engine.spike_render`) vs the captured spike
+    through the spike camera model (:mod:`engine.spike.render`) vs the captured spike
     counts in ``m`` frames centred on ``t`` (expected-count renderer by default, or the
     m-step integrate-and-fire with a surrogate gradient, ``spike_loss_mode='if'``); the
     rate difference is divided by the photometric scale, i.e. measured in linear luminance;
   - the block colour loss (Eq. 20): 4x4 average-pooled render vs the frame interpolated
     (flow or linear) from the camera's RGB frames at T1 and T2.
   The frame loss at RGB instants (Eq. 22) is the trainer's own L1 + D-SSIM term.
-* :func:`guidance_factory` is registered with :func:`engine.train.register_loss_factory`;
+* :func:`guidance_factory` is listed in :data:`engine.train.trainer.LOSS_FACTORIES`;
   with ``rgb_only`` the trainer never calls it; without a spike stream it returns nothing
   (no flag needed): such captures train exactly as the RGB-only model.
 
@@ -143,7 +143,7 @@ class SpikeGuidance:
         if self.stream is not None and cfg.spike_skip_static:
             self.skip_static_windows()
 
-    # --- skipping spike windows without change (engine.spike_change) --------------------------
+    # --- skipping spike windows without change (engine.spike.change) --------------------------
     def window_cache(self) -> SpikeWindowCache | None:
         """Spike windows of the co-located camera's RGB intervals (shared with the fine branch)."""
         if self._window_cache is None and self.stream is not None:
