@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from tools import bench
+from tools import bench, micro
 
 
 def _tiny_capture(root: Path) -> Path:
@@ -138,7 +138,7 @@ def test_unknown_variant_rejected(tmp_path, capture):
 
 def test_micro_decode_decodes_identically_and_reports_speedups():
     # the speed-up figures belong in the benchmark's output (python -m tools bench), not here
-    r = bench.micro_decode(quick=True)
+    r = micro.micro_decode(quick=True)
     assert r["identical"]
     assert r["speedup_vs_community"] > 0 and r["speedup_vs_python_loop"] > 0
 
@@ -218,6 +218,6 @@ def test_micro_freeze_step_on_a_run_with_a_frozen_mask(tmp_path, capture):
     model = Model4D(g, field, static_mask=mask)
     save_checkpoint(tmp_path / "run", {"model": model.state(), "step": 1, "total_steps": 1,
                                        "time_range": [0.0, 0.2], "gaussians": 200})
-    r = bench.micro_freeze_step(tmp_path / "run", capture, repeats=2)
+    r = micro.micro_freeze_step(tmp_path / "run", capture, repeats=2)
     assert r["frozen_fraction"] == 0.75 and r["gaussians"] == 200
     assert r["step_ms_frozen"] > 0 and r["step_ms_unfrozen"] > 0 and r["speedup"] > 0
