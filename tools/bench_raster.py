@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import resource
 import statistics
 import tempfile
 import time
@@ -93,7 +94,6 @@ def time_cell(args, width, height, backend, repeats, sh_degree):
 
 def _maxrss_mb() -> float:
     try:
-        import resource
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     except Exception:  # not on Windows
         return float("nan")

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import sys
 
+from ..errors import RunError
+from ..export.npz import export_npz
+from ..scene.model import load_run
+
 HELP = "export the Gaussians at N instants in [T0, T1] to a compact .npz cache"
 
 
@@ -17,9 +21,6 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     import numpy as np
 
-    from ..errors import RunError
-    from ..export.npz import export_npz
-    from ..scene.model import load_run
 
     try:
         scene = load_run(args.run, device=args.device)

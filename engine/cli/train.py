@@ -1,10 +1,16 @@
 """``python -m engine train CAPTURE --out RUN``: train a 4D Gaussian scene (tqdm progress)."""
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import sys
 import threading
+
+from tqdm import tqdm
+
+from ..errors import CaptureError, RunError
+from ..train import train
 
 HELP = "train a 4D Gaussian scene on a capture folder"
 
@@ -45,8 +51,6 @@ Each field of engine.train.presets.TrainConfig can be set the same way."""
 
 
 def add_arguments(p) -> None:
-    import argparse
-
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = SKIP_HELP
     p.add_argument("capture", help="capture folder (transforms.json)")
@@ -63,11 +67,6 @@ def add_arguments(p) -> None:
 
 
 def main(args) -> int:
-    from tqdm import tqdm
-
-    from ..errors import CaptureError, RunError
-    from ..train import train
-
     overrides = parse_overrides(args.overrides)
     cancel = threading.Event()
     bar = None

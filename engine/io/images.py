@@ -144,7 +144,7 @@ def _unfilter_impl():
     if _UNFILTER is None:
         _UNFILTER = _unfilter_rows
         try:
-            import numba
+            import numba  # lazy: optional; the plain-Python decoder is the fallback
 
             try:
                 _UNFILTER = numba.njit(cache=True)(_unfilter_rows)
@@ -213,7 +213,7 @@ def _read_png(path: Path) -> np.ndarray:
 
 
 def _read_pillow(path: Path) -> np.ndarray:
-    from PIL import Image
+    from PIL import Image  # lazy: only 8-bit PNG / JPEG need Pillow (the UI imports this module)
 
     try:
         with Image.open(path) as im:
@@ -235,7 +235,7 @@ def _read_pillow(path: Path) -> np.ndarray:
 
 def read_exr_channels(path: str | Path) -> dict[str, np.ndarray]:
     """All channels of a (single-part) EXR file: name -> float32 [H, W]."""
-    import OpenEXR
+    import OpenEXR  # lazy: only EXR files need it (the UI imports this module)
 
     path = Path(path)
     _kind(path)
@@ -317,7 +317,7 @@ def read_image_size(path: str | Path) -> tuple[int, int]:
             w, h, *_ = _png_header(path, fh.read(33))
         return int(w), int(h)
     if kind == "exr":
-        import OpenEXR
+        import OpenEXR  # lazy: only EXR files need it (the UI imports this module)
 
         try:
             with OpenEXR.File(str(path), header_only=True) as f:
@@ -325,7 +325,7 @@ def read_image_size(path: str | Path) -> tuple[int, int]:
         except Exception as exc:
             raise CaptureError(path, f"cannot read EXR header: {exc}") from None
         return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
-    from PIL import Image
+    from PIL import Image  # lazy: only 8-bit PNG / JPEG need Pillow (the UI imports this module)
 
     try:
         with Image.open(path) as im:
@@ -374,7 +374,7 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray] | np.ndarray, *,
     """Write an EXR atomically. ``channels``: name -> [H, W] array (e.g. R, G, B, A, Z), or an
     [H, W, 3|4] array (taken as R, G, B(, A)). Values are written as given (linear light).
     ``half=True`` stores float16 (Z and other non-colour channels stay float32)."""
-    import OpenEXR
+    import OpenEXR  # lazy: only EXR files need it (the UI imports this module)
 
     path = Path(path)
     if isinstance(channels, np.ndarray):

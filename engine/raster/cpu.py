@@ -23,7 +23,7 @@ def _load():
         with _lock:
             if _kernels is None and _kernels_error is None:
                 try:
-                    from . import _kernels as k
+                    from . import _kernels as k  # lazy: numba compiles / loads its cache here
                     _kernels = k
                 except Exception as exc:  # ImportError, or a broken numba/llvmlite install
                     _kernels_error = exc
