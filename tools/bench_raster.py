@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import os
-import resource
 import statistics
 import tempfile
 import time
@@ -94,6 +93,8 @@ def time_cell(args, width, height, backend, repeats, sh_degree):
 
 def _maxrss_mb() -> float:
     try:
+        import resource  # lazy: Unix only
+
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     except Exception:  # not on Windows
         return float("nan")
