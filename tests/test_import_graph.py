@@ -27,3 +27,21 @@ def test_the_check_catches_cycles_upward_arrows_bpy_and_size(tmp_path):
     assert "imports bpy" in problems
     assert "import cycle: engine.train.losses -> engine.train.trainer" in problems
     assert "big.py:1: 30 lines" in problems
+
+
+def test_engine_top_level_names_and_subpackages(repo_root):
+    """``engine.train`` is the package whatever was imported first; the lazy names resolve."""
+    import subprocess
+    import sys
+
+    code = ("import types, engine\n"
+            "from engine import load_run, rasterization, tfp\n"  # the lazy names first ...
+            "assert isinstance(engine.train, types.ModuleType), engine.train\n"  # ... then the package
+            "assert callable(engine.train.train) and engine.train.TrainConfig and engine.train.get_preset\n"
+            "assert callable(engine.evaluate.evaluate)\n"
+            "for n in ('load_capture', 'Capture', 'read_spikes', 'write_spikes', 'SpikeStream', 'simulate_spikes',\n"
+            "          'tfp', 'tfi', 'rasterization', 'load_run'):\n"
+            "    assert getattr(engine, n) is not None, n\n"
+            "print('ok')\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
