@@ -83,6 +83,7 @@ def capture(tmp_path):
     return load_capture(_tiny_capture(tmp_path / "cap"))
 
 
+@pytest.mark.slow
 def test_bench_with_stub_trainer_writes_all_outputs(tmp_path, capture):
     out = tmp_path / "bench"
     res = bench.run_bench(capture, out, presets=("fast",), variants=("full", "rgb_only"), seconds=5,
@@ -109,6 +110,7 @@ def test_bench_with_stub_trainer_writes_all_outputs(tmp_path, capture):
     assert data["runs"][1]["summary"]["rgb_only"] is True
 
 
+@pytest.mark.slow
 def test_curve_improves_when_the_model_does(tmp_path, capture):
     res = bench.run_bench(capture, tmp_path / "b", presets=("fast",), variants=("full",), seconds=5, eval_every_s=1,
                           micro=False, progress=False, train_fn=stub_train, flicker=False, log=None)
@@ -150,6 +152,7 @@ def test_cli_rejects_unknown_variant(tmp_path, capsys):
     assert rc == 2 and "unknown variant" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_skip_variants_are_trainer_switches(tmp_path, capture):
     """freeze / early_stop / cull reach the trainer as its config switches (overrides), and
     what the trainer reports about them (summary["skips"]) lands in the bench results."""
@@ -185,6 +188,7 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
     assert "stopped at 6/9" in md and "culled 7" in md and "frozen 50% at end, woken 2" in md
 
 
+@pytest.mark.slow
 def test_skip_variants_with_the_real_trainer(tmp_path, capture):
     ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
           "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,

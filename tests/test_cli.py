@@ -18,6 +18,7 @@ def run_dir(demo_capture, tmp_path_factory):
     return run
 
 
+@pytest.mark.slow
 def test_train_writes_a_run(run_dir, demo_capture, capsys):
     info = json.loads((run_dir / "run.json").read_text())
     assert info["status"] == "finished" and info["step"] == 12 and info["seed"] == 1
@@ -29,6 +30,7 @@ def test_train_writes_a_run(run_dir, demo_capture, capsys):
     assert summary["resumed_from"] == 12 and summary["status"] == "finished"
 
 
+@pytest.mark.slow
 def test_eval_prints_metrics_json(run_dir, capsys):
     assert main(["eval", str(run_dir)]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -41,6 +43,7 @@ def test_eval_prints_metrics_json(run_dir, capsys):
     assert json.loads((run_dir / "metrics.json").read_text())["psnr"] == out["psnr"]
 
 
+@pytest.mark.slow
 def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
     from engine.io.images import read_exr_channels, read_image_rgba
 
@@ -62,6 +65,7 @@ def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
     assert "none.json" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_render_names_never_collide(run_dir, demo_capture, tmp_path, capsys):
     """rgb0/000000.png and rgb1/000000.png of the capture both have the stem 000000: every
     view still gets its own file (camera-prefixed), and the count printed is the count on disk."""
@@ -95,6 +99,7 @@ def test_output_names_disambiguate_or_refuse():
         output_names([a, a])
 
 
+@pytest.mark.slow
 def test_export_npz(run_dir, tmp_path):
     from engine.export.npz import read_export
     from engine.scene.model import load_run
@@ -115,6 +120,7 @@ def test_cli_errors_are_messages(tmp_path, capsys):
     assert "no_capture" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_command(demo_capture, tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--views", "4", *TINY]) == 0

@@ -80,6 +80,7 @@ def _window(stream):
     return SpikeWindowCache(stream, [0.0, 0.01, 0.02, 0.03], k_sub=6).window(0.015)
 
 
+@pytest.mark.slow
 def test_fine_feature_starts_at_zero_and_learns_time(stream):
     torch.manual_seed(0)
     w = _window(stream)

@@ -21,6 +21,7 @@ from roundtrip_util import reconstructed, run_tmp  # noqa: F401  (fixtures)
 pytest.importorskip("bpy")
 
 
+@pytest.mark.slow
 def test_headless_example_script(reconstructed, demo_capture, tmp_path):
     from engine.io.images import read_exr_channels
 

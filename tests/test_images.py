@@ -86,6 +86,7 @@ def _encode_png16_filters(q: np.ndarray) -> bytes:
             + chunk(b"IDAT", zlib.compress(bytes(out))) + chunk(b"IEND", b""))
 
 
+@pytest.mark.slow
 def test_png16_all_filter_types(tmp_path):
     rng = np.random.default_rng(2)
     q = rng.integers(0, 65536, size=(10, 7, 3), dtype=np.uint16)

@@ -92,6 +92,7 @@ def _cycles_setup(scene, cam, res_pct=40, samples=16):
         scene.world = bpy.data.worlds.new("black")
 
 
+@pytest.mark.slow
 def test_cycles_render_matches_engine(rt_scene, reconstructed, demo_capture, tmp_path):
     from engine.colour import linear_to_srgb
     from engine.io.images import read_image_rgba

@@ -236,6 +236,7 @@ def test_tile_size_does_not_change_result():
     assert_grads_close(a["grads"], b["grads"], rel=1e-4)
 
 
+@pytest.mark.slow
 def test_gradcheck_reference_float64():
     sc = make_scene(N=4, W=7, H=6, C=2, seed=8, sh_degree=1, dtype=torch.float64, scale=0.3,
                     spread=0.5)
@@ -251,6 +252,7 @@ def test_gradcheck_reference_float64():
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
+@pytest.mark.slow
 @NEEDS_NUMBA
 def test_cpu_float64_inputs_give_float64_outputs():
     sc = make_scene(N=30, seed=9, dtype=torch.float64)

@@ -260,6 +260,7 @@ def test_between_instants_follow_the_trainers_time_curriculum(cap):
     assert max(g.between(_ctx(tr, step=s))["instant"].time for s in range(60, 120)) > 0.1
 
 
+@pytest.mark.slow
 def test_block_targets_are_pooled_cached_and_close_to_the_exact_instant(cap, monkeypatch):
     from engine.train import spike_guidance as sg
     from engine.train.interpolation import avg_pool_blocks

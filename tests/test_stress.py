@@ -15,7 +15,7 @@ from tools import stress, stress_checks
 STEPS = 40
 OPT_CASES = ["scale_tiny", "scale_huge", "scale_range", "opacity_zero", "opacity_threshold",
              "opacity_saturated", "near_plane", "degenerate_cov", "extent_tiny", "extent_huge",
-             "empty_view", "long_time"]
+             "empty_view", pytest.param("long_time", marks=pytest.mark.slow)]
 
 
 @pytest.mark.parametrize("name", OPT_CASES)
@@ -91,6 +91,7 @@ def test_cli_quick_subset_prints_count_last(capsys):
     assert any(line.startswith("empty_view") for line in out)
 
 
+@pytest.mark.slow
 def test_real_trainer_stays_finite_on_a_tiny_capture():
     res = stress.run_case("trainer", 20)
     assert res.failures == [] and res.nonfinite == 0, res.to_dict()

@@ -56,6 +56,7 @@ def test_static_scene_is_recovered_from_random_init(static_capture, tmp_path):
     assert m["ssim"] > 0.6, m
 
 
+@pytest.mark.slow
 def test_deforming_scene_improves_with_training_and_beats_the_static_model(moving_capture, tmp_path):
     ov = {"iterations": 120, "init": "ply", "static_fraction": 0.25, "densify_until": 0.5}
     run = tmp_path / "dyn"
