@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from tools import stress, stress_checks
+from tools import stress, stress_checks, synthetic
 
 STEPS = 40
 OPT_CASES = ["scale_tiny", "scale_huge", "scale_range", "opacity_zero", "opacity_threshold",
@@ -75,7 +75,7 @@ def test_nan_pixels_rejected_naming_the_image(tmp_path):
 
     img = np.full((8, 8, 3), 0.5, np.float32)
     img[2, 3, 1] = np.nan
-    stress_checks.write_tiny_capture(tmp_path / "cap", image=img, exr=True)
+    synthetic.write_tiny_capture(tmp_path / "cap", image=img, exr=True)
     cap = load_capture(tmp_path / "cap")
     with pytest.raises(CaptureError, match="f0.exr"):
         cap.frames[0].load_rgb()

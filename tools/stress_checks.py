@@ -3,7 +3,6 @@ streams, float32 vs float64, bad capture inputs, and the real trainer at two sce
 """
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 import time
@@ -12,10 +11,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from engine.cameras import look_at_c2w
 from engine.errors import CaptureError
 from engine.io.capture import load_capture
-from engine.io.images import write_exr, write_png
 from engine.io.spikes import read_spikes, write_spikes
 from engine.spike import render as sr
 from engine.spike.simulate import simulate_spikes, tfi, tfp
@@ -23,6 +20,7 @@ from engine.train import train
 from engine.train.trainer import LOSS_FACTORIES
 
 from .stress_cases import PARAM_ORDER, CaseResult, count_nonfinite, make_camera, random_params, render_raw
+from .synthetic import write_moving_capture, write_tiny_capture
 
 # ----------------------------------------------------------------------------- check cases
 
@@ -159,24 +157,6 @@ def case_fp32_vs_fp64(steps, tick, seed=0):
     return res
 
 
-def write_tiny_capture(root: Path, *, pose=None, fl_x=20.0, time_value=0.0, image: np.ndarray | None = None,
-                        exr: bool = False) -> Path:
-    """A one-camera, one-frame capture (ours layout); returns transforms.json's path."""
-
-    root.mkdir(parents=True, exist_ok=True)
-    img = np.full((8, 8, 3), 0.5, np.float32) if image is None else image
-    name = "f0.exr" if exr else "f0.png"
-    if exr:
-        write_exr(root / name, img)
-    else:
-        write_png(root / name, img)
-    c2w = np.eye(4).tolist() if pose is None else pose
-    data = {"cameras": {"cam": {"w": 8, "h": 8, "fl_x": fl_x, "fl_y": 20.0, "cx": 4.0, "cy": 4.0}},
-            "frames": [{"file_path": name, "camera": "cam", "time": time_value, "transform_matrix": c2w}]}
-    (root / "transforms.json").write_text(json.dumps(data, allow_nan=True))
-    return root / "transforms.json"
-
-
 def bad_input_checks(tmp: Path) -> list[dict]:
     """Each bad input -> dict(name, rejected, names_file, message, leaked). ``leaked`` counts
     non-finite values that reached the caller (0 when rejected)."""
@@ -239,24 +219,6 @@ def case_bad_inputs(steps, tick, seed=0):
     if tick is not None:
         tick(steps)
     return res
-
-
-def write_moving_capture(root: Path, scale: float = 1.0, seed: int = 0) -> Path:
-    """Two 32x24 cameras, three instants of a bright moving block, scene scaled by ``scale``."""
-
-    root.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    frames = []
-    for cam, x in (("a", -0.3), ("b", 0.3)):
-        c2w = look_at_c2w((x * scale, -4.0 * scale, 0.0), (0.0, 0.0, 0.0)).tolist()
-        for i in range(3):
-            img = np.clip(rng.random((24, 32, 3)) * 0.3 + 0.3, 0, 1).astype(np.float32)
-            img[8:16, 4 + 4 * i: 12 + 4 * i] = 0.9
-            write_png(root / f"{cam}{i}.png", img)
-            frames.append({"file_path": f"{cam}{i}.png", "camera": cam, "time": i / 30, "transform_matrix": c2w})
-    intr = {"w": 32, "h": 24, "fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0}
-    (root / "transforms.json").write_text(json.dumps({"cameras": {"a": intr, "b": intr}, "frames": frames}))
-    return root
 
 
 def case_trainer(steps, tick, seed=0):

@@ -4,6 +4,9 @@
 moving in front of it); :func:`write_synthetic_capture` renders it with the engine's
 rasterizer from stereo train cameras and an eval camera into a capture folder
 (``CAPTURE_FORMAT.md``), so training can be checked against a known answer.
+:func:`write_tiny_capture` (one 8x8 frame, any pose / intrinsics / pixels: bad-input checks)
+and :func:`write_moving_capture` (a bright block moving over noise, scene scaled by
+``scale``: extreme-extent training) serve the stress suite.
 """
 from __future__ import annotations
 
@@ -15,11 +18,11 @@ import numpy as np
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.io.images import write_png
+from engine.io.images import write_exr, write_png
 from engine.io.points import write_points
 from engine.raster import rasterization
 
-__all__ = ["synthetic_scene", "write_synthetic_capture"]
+__all__ = ["synthetic_scene", "write_moving_capture", "write_synthetic_capture", "write_tiny_capture"]
 
 def synthetic_scene(seed: int = 0, n_wall: int = 900, n_blob: int = 150, speed=(1.5, 0.0, 0.0)):
     """Ground-truth Gaussians: a textured wall (y = 2) and a textured blob moving at ``speed``
@@ -100,3 +103,39 @@ def write_synthetic_capture(out, *, width: int = 64, height: int = 48, rgb_fps: 
         write_points(out / "points.ply", pts, cols)
     (out / "transforms.json").write_text(json.dumps(data, indent=1))
     return out
+
+
+def write_tiny_capture(root: Path, *, pose=None, fl_x=20.0, time_value=0.0, image: np.ndarray | None = None,
+                        exr: bool = False) -> Path:
+    """A one-camera, one-frame capture (ours layout); returns transforms.json's path."""
+
+    root.mkdir(parents=True, exist_ok=True)
+    img = np.full((8, 8, 3), 0.5, np.float32) if image is None else image
+    name = "f0.exr" if exr else "f0.png"
+    if exr:
+        write_exr(root / name, img)
+    else:
+        write_png(root / name, img)
+    c2w = np.eye(4).tolist() if pose is None else pose
+    data = {"cameras": {"cam": {"w": 8, "h": 8, "fl_x": fl_x, "fl_y": 20.0, "cx": 4.0, "cy": 4.0}},
+            "frames": [{"file_path": name, "camera": "cam", "time": time_value, "transform_matrix": c2w}]}
+    (root / "transforms.json").write_text(json.dumps(data, allow_nan=True))
+    return root / "transforms.json"
+
+
+def write_moving_capture(root: Path, scale: float = 1.0, seed: int = 0) -> Path:
+    """Two 32x24 cameras, three instants of a bright moving block, scene scaled by ``scale``."""
+
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    frames = []
+    for cam, x in (("a", -0.3), ("b", 0.3)):
+        c2w = look_at_c2w((x * scale, -4.0 * scale, 0.0), (0.0, 0.0, 0.0)).tolist()
+        for i in range(3):
+            img = np.clip(rng.random((24, 32, 3)) * 0.3 + 0.3, 0, 1).astype(np.float32)
+            img[8:16, 4 + 4 * i: 12 + 4 * i] = 0.9
+            write_png(root / f"{cam}{i}.png", img)
+            frames.append({"file_path": f"{cam}{i}.png", "camera": cam, "time": i / 30, "transform_matrix": c2w})
+    intr = {"w": 32, "h": 24, "fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0}
+    (root / "transforms.json").write_text(json.dumps({"cameras": {"a": intr, "b": intr}, "frames": frames}))
+    return root
