@@ -71,8 +71,8 @@ class FakeScene4D:
         return dict(means=(self.m0 + t * self.vel).astype(np.float32), quats=self.quats.copy(),
                     scales=self.scales.copy(), opacities=self.opac.copy(), colors=self.colors.copy())
 
-    def render(self, views, background=None):
-        return [splat(self.gaussians_at(v.time), v, background) for v in views]
+    def render(self, views, background=None, time=None):
+        return [splat(self.gaussians_at(v.time if time is None else time), v, background) for v in views]
 
 
 def make_fake_capture(root, *, width=64, height=48, rgb_fps=30.0, eval_fps=150.0, duration=0.2, n=40, seed=0):

@@ -128,9 +128,9 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     gate = threading.Event()
 
     class Slow(FakeScene4D):
-        def render(self, views, background=None):
+        def render(self, views, background=None, time=None):
             gate.wait(10)
-            return super().render(views, background)
+            return super().render(views, background, time)
 
     job = worker.Job(worker.render_views_job, scene4d=Slow(n=10, seed=2), views=views, outputs=exr).start()
     job.cancel()
