@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from engine.model import Scene4D
+
 
 def quat_to_mat(q):
     w, x, y, z = q / np.linalg.norm(q)
@@ -52,7 +54,10 @@ def splat(g, view, background=None):
 
 
 class FakeScene4D:
-    """N Gaussians in a small cluster around ``center``, moving with constant velocity."""
+    """N Gaussians in a small cluster around ``center``, moving with constant velocity.
+    ``sample`` is the real ``Scene4D.sample`` (it only needs ``gaussians_at``)."""
+
+    sample = Scene4D.sample
 
     def __init__(self, n=40, seed=0, time_range=(0.0, 0.2), center=(0.0, 0.0, 0.0), speed=2.0):
         rng = np.random.default_rng(seed)

@@ -22,7 +22,7 @@ def _setup(run_dir, demo_capture):
 
 
 def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_path):
-    from engine.colour import linear_to_srgb
+    from engine.colour import srgb_to_linear
     from engine.images import read_exr_channels
     from engine.model import load_run
 
@@ -60,12 +60,15 @@ def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_pat
     assert np.abs(img[2] - img[0]).max() > 1e-3                    # camera moved
     assert np.abs(img[3] - img[2]).max() > 1e-3
     assert np.all(np.isfinite(chans[0]["Z"])) and chans[0]["Z"][chans[0]["A"] > 0.5].max() < 1e3
-    # the EXR is the engine's exact render of that camera at that time (linear)
+    # the EXR is the engine's exact render of that camera at that time (linear light,
+    # premultiplied: the straight sRGB colour decoded, then multiplied by alpha)
     bc = roundtrip_util.addon_module("bt4d_addon.blender_cameras")
     scene.frame_set(3)
     view = bc.camera_to_view(orbit, scene, time=t_frozen)
     ref = load_run(reconstructed["run_dir"]).render([view], background=(0, 0, 0))[0]
-    np.testing.assert_allclose(np.clip(linear_to_srgb(img[2][..., :3]), 0, 1), ref["rgb"], atol=2e-4)
+    a = ref["alpha"][..., None]
+    straight = np.where(a > 1e-6, ref["rgb"] / np.maximum(a, 1e-6), 0.0).clip(0, 1)
+    np.testing.assert_allclose(img[2][..., :3], srgb_to_linear(straight) * a, atol=2e-4)
     np.testing.assert_allclose(img[2][..., 3], ref["alpha"], atol=1e-5)
     # loaded back as an image sequence
     name = scene.get("bt4d_last_render")
