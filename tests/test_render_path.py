@@ -106,6 +106,7 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     """The path-render job in a worker thread (stand-in model): straight-alpha RGBA PNGs,
     EXR Z where something was hit, and cancel keeps the frames written so far."""
     import threading
+    import time
 
     from engine.cameras import Intrinsics, View, look_at_c2w
     from engine.images import read_exr_channels, read_image_rgba
@@ -116,11 +117,15 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     k = Intrinsics(24, 18, 22.0, 22.0, 12.0, 9.0)
     views = [View(k, look_at_c2w([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]), 0.1) for a in (0.0, 0.5, 1.0)]
     outs = [str(tmp_path / f"f{i}.png") for i in range(3)]
-    job = worker.Job(worker.render_views_job, scene4d=model, views=views, outputs=outs, file_format="PNG",
-                     transparent=True).start()
-    job.join(60)
-    job.poll()
+    # pumped as the modal operator's timer does
+    progress = []
+    job = worker.Job(worker.render_views_job, kind="test_render", scene4d=model, views=views, outputs=outs,
+                     file_format="PNG", transparent=True).watch(progress.append).start()
+    deadline = time.monotonic() + 60
+    while job.pump() and time.monotonic() < deadline:
+        time.sleep(0.02)
     assert job.result["status"] == "finished" and job.result["written"] == outs
+    assert [(p["step"], p["total_steps"], p["path"]) for p in progress] == [(i + 1, 3, o) for i, o in enumerate(outs)]
     ref = model.render(views[:1])[0]
     img = read_image_rgba(outs[0])
     np.testing.assert_allclose(img[..., 3], ref["alpha"], atol=1 / 255 + 1e-6)
