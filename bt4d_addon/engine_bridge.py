@@ -22,15 +22,15 @@ _IN_EXTENSION = "." in (__package__ or "")
 
 if _IN_EXTENSION:
     from ..engine.cameras import Intrinsics, View, look_at_c2w
-    from ..engine.io.capture import load_capture
     from ..engine.colour import srgb_to_linear
     from ..engine.errors import CaptureError
+    from ..engine.io.capture import load_capture
     from ..engine.io.images import read_image_size
 else:  # bt4d_addon imported from the checkout's root
     from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.io.capture import load_capture
     from engine.colour import srgb_to_linear
     from engine.errors import CaptureError
+    from engine.io.capture import load_capture
     from engine.io.images import read_image_size
 
 __all__ = ["CaptureError", "Intrinsics", "View", "evaluate", "load_capture", "load_run", "look_at_c2w",
@@ -42,13 +42,13 @@ def _torch_side() -> SimpleNamespace:
     """The torch-backed engine functions, imported on first use (see the module docstring)."""
     if _IN_EXTENSION:
         from ..engine.evaluate import evaluate
-        from ..engine.scene.model import load_run
         from ..engine.export.render_views import write_renders
+        from ..engine.scene.model import load_run
         from ..engine.train import train
     else:
         from engine.evaluate import evaluate
-        from engine.scene.model import load_run
         from engine.export.render_views import write_renders
+        from engine.scene.model import load_run
         from engine.train import train
     return SimpleNamespace(evaluate=evaluate, load_run=load_run, train=train, write_renders=write_renders)
 

@@ -139,7 +139,8 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
     res = job.result or {}
     summary = res.get("summary", {})
     status = str(summary.get("status", "finished"))
-    apply_progress(scene, {"step": summary.get("step", r.step), "total_steps": summary.get("total_steps", r.total_steps),
+    apply_progress(scene, {"step": summary.get("step", r.step),
+                           "total_steps": summary.get("total_steps", r.total_steps),
                            "num_gaussians": summary.get("num_gaussians", r.num_gaussians),
                            "elapsed_s": summary.get("train_seconds", r.elapsed_s), "eta_s": 0.0})
     if status == "cancelled":
@@ -155,7 +156,8 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
     msgs = []
     if summary.get("stopped_early"):
         se = summary["stopped_early"]
-        msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} (held-out PSNR no longer improving)")
+        msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} "
+                    "(held-out PSNR no longer improving)")
     if res.get("metrics_error"):
         msgs.append(f"evaluation failed: {res['metrics_error']}")
     if res.get("samples") is not None:

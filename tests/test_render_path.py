@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 import roundtrip_util
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 
@@ -108,9 +107,10 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     import threading
     import time
 
+    from roundtrip_fakes import FakeScene4D
+
     from engine.cameras import Intrinsics, View, look_at_c2w
     from engine.io.images import read_exr_channels, read_image_rgba
-    from roundtrip_fakes import FakeScene4D
 
     worker = roundtrip_util.addon_module("bt4d_addon.worker")
     model = FakeScene4D(n=10, seed=2)
