@@ -21,6 +21,12 @@ Spike streams (ours only): ``w``/``h`` default to the camera's and must match it
 the stream's camera, else of ``co_located_with``; optional ``head_cols`` / ``flipud`` are
 passed to :func:`engine.spikes.read_spikes`.
 
+Ground truth (ours only, optional; written by scripts/make_capture.py): a frame's
+``depth_file_path`` names a single-channel float32 EXR (channel ``Z``) of planar depth in
+metres, ``inf`` (or > 1e9) where no surface is (:meth:`Frame.load_depth`); a top-level
+``ground_truth.objects`` block names an npz of moving objects' object-to-world matrices at
+``rate_hz`` and surface samples (:class:`ObjectTruth`, :meth:`ObjectTruth.load`).
+
 Everything the loader can check without decoding images is checked at load time and
 reported as :class:`engine.errors.CaptureError` naming the file (and the frame / key) and
 the problem. Image sizes are checked when a frame's pixels are loaded
@@ -41,6 +47,7 @@ from .cameras import Intrinsics, View
 from .colour import linear_to_srgb
 from .errors import CaptureError
 from .fileio import atomic_path
+from .io.ground_truth import GroundTruth, ObjectTruth, load_depth
 from .spikes import SpikeStream, count_frames, frame_bytes
 
 ROLES = ("train", "eval")
@@ -78,6 +85,14 @@ class Frame:
     intrinsics: Intrinsics | None = None
     role: str = "train"
     extra: dict = field(default_factory=dict)
+    depth_file_path: Path | None = None  # ground-truth planar depth EXR (absolute), if the capture has it
+
+    def load_depth(self) -> np.ndarray:
+        """float32 [H, W] ground-truth planar depth (metres along the viewing axis); ``inf``
+        where no surface is (values > 1e9 and non-finite ones are read as ``inf``)."""
+        if self.depth_file_path is None:
+            raise CaptureError(self.path, "frame has no ground-truth depth (no depth_file_path)")
+        return load_depth(self.depth_file_path, self.intrinsics)
 
     def load_rgba(self) -> np.ndarray:
         """float32 [H, W, 4]: RGB sRGB-encoded in [0, 1] (EXR encoded and clipped), alpha."""
@@ -164,6 +179,7 @@ class Capture:
     format: str = "bt4d"
     transforms_path: Path | None = None
     val_frames: list[Frame] = field(default_factory=list)
+    ground_truth: "GroundTruth | None" = None
 
     def __repr__(self) -> str:
         return (f"Capture({str(self.root)!r}, format={self.format}, cameras={list(self.cameras)}, "
@@ -380,7 +396,13 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
         t = ctx.num(ctx.get(d, "time", where), f"{where}.time")
         c2w = ctx.matrix(ctx.get(d, "transform_matrix", where), f"{where}.transform_matrix")
         role = "eval" if default_role == "eval" else cameras[cam].role
-        return Frame(path, cam, t, c2w, cameras[cam].intrinsics, role)
+        depth = None
+        if "depth_file_path" in d:
+            dfp = ctx.string(d["depth_file_path"], f"{where}.depth_file_path")
+            depth = Path(os.path.normpath(root / dfp))
+            if not depth.is_file():
+                ctx.fail(f"{where}.depth_file_path", f"depth file {dfp!r} does not exist ({depth})")
+        return Frame(path, cam, t, c2w, cameras[cam].intrinsics, role, depth_file_path=depth)
 
     all_frames = [frame(d, f"frames[{i}]", "train") for i, d in enumerate(ctx.list_of(data, "frames", required=True))]
     frames = [f for f in all_frames if f.role == "train"]
@@ -435,8 +457,33 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
         streams.append(SpikeStreamInfo(spath.resolve(), cam, rate, t0, int(n), int(w), int(h), co,
                                        None if c2w is None else np.array(c2w), k, int(head_cols), flipud))
 
-    return Capture(root, cameras, frames, eval_frames, streams, _find_points(root, data, ctx),
-                   _time_range(frames + eval_frames, streams), "bt4d", tpath)
+    cap = Capture(root, cameras, frames, eval_frames, streams, _find_points(root, data, ctx),
+                  _time_range(frames + eval_frames, streams), "bt4d", tpath)
+    if "ground_truth" in data:
+        cap.ground_truth = _ground_truth(ctx, root, data["ground_truth"])
+    return cap
+
+
+def _ground_truth(ctx: _Ctx, root: Path, gt) -> GroundTruth:
+    if not isinstance(gt, dict):
+        ctx.fail("ground_truth", f"must be an object, got {type(gt).__name__}")
+    out = GroundTruth()
+    if "objects" in gt:
+        where = "ground_truth.objects"
+        o = gt["objects"]
+        fp = ctx.string(ctx.get(o, "file_path", where), f"{where}.file_path")
+        path = Path(os.path.normpath(root / fp))
+        if not path.is_file():
+            ctx.fail(f"{where}.file_path", f"ground-truth objects file {fp!r} does not exist ({path})")
+        rate = ctx.num(ctx.get(o, "rate_hz", where), f"{where}.rate_hz", positive=True)
+        t0 = ctx.num(o.get("t0", 0.0), f"{where}.t0")
+        names = ctx.get(o, "names", where)
+        if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+            ctx.fail(f"{where}.names", f"must be a list of non-empty strings, got {names!r}")
+        if len(set(names)) != len(names) or "times" in names:
+            ctx.fail(f"{where}.names", f"must be distinct and not 'times', got {names!r}")
+        out.objects = ObjectTruth(path, rate, t0, list(names))
+    return out
 
 
 def _load_nerfstudio(root: Path, tpath: Path, data: dict) -> Capture:
