@@ -14,7 +14,9 @@ scripts/make_capture.py), :func:`evaluate_novel_views` reports
 * ``psnr_observed`` beside ``psnr`` (whole image): PSNR over the pixels some train camera saw
   (:func:`observed_mask`: the eval pixel's GT surface point, back-projected from GT depth,
   lands inside a train image and is not hidden there, judged with that view's GT depth), so
-  what no camera could see is kept apart from what is wrong; ``observed`` is that share.
+  what no camera could see is kept apart from what is wrong; ``observed`` is that share;
+* ``psnr_moving``: PSNR over pixels whose ground truth changes to the neighbouring eval frame
+  of that camera (``engine.metrics.motion_masks``: what moves), averaged over frames having any.
 
 Train-view GT depth exists at the RGB instants only; for an eval instant between them the
 observed mask uses the train views at the nearest RGB instant (the static set, which is what
@@ -36,7 +38,7 @@ from .cameras import View
 from .checkpoint import write_json
 from .errors import RunError
 from .images import write_png
-from .metrics import is_interframe, psnr, ssim
+from .metrics import is_interframe, motion_masks, psnr, ssim
 
 ALPHA_COVERED = 0.5   # a pixel the render covers: alpha above this (issue 14's definition)
 OBSERVED_REL_TOL = 0.02  # a GT point is visible in a train view if not behind its GT depth by > 2 %
@@ -193,9 +195,10 @@ def evaluate_novel_views(scene, cap, out_dir=None, *, strip_times=None, log=None
     for cam, fs in by_cam.items():
         fs = sorted(fs, key=lambda fr: fr.time)
         strip_pick = {min(fs, key=lambda fr: abs(fr.time - s)).path for s in strip_times}
-        for fr in fs:
+        gts = [fr.load_rgb() for fr in fs]
+        for fr, gt, moving in zip(fs, gts, motion_masks(gts)):
             view = fr.view()
-            gt, gt_depth = fr.load_rgb(), fr.load_depth()
+            gt_depth = fr.load_depth()
             out = scene.render([view])[0]
             pred, alpha, depth = out["rgb"], out["alpha"], out["depth"]
             seen = observed_mask(view, gt_depth, train_views(fr.time))
@@ -204,6 +207,7 @@ def evaluate_novel_views(scene, cap, out_dir=None, *, strip_times=None, log=None
             rows.append({"camera": cam, "time": float(fr.time), "rgb_instant": bool(at_rgb),
                          "between": is_interframe(fr.time, rgb_times), "psnr": psnr(pred, gt),
                          "ssim": ssim(pred, gt), "psnr_observed": psnr(pred, gt, seen) if seen.any() else float("nan"),
+                         "psnr_moving": psnr(pred, gt, moving) if moving.any() else float("nan"),
                          "observed": float(seen.mean()), "coverage": coverage(alpha, gt_depth),
                          "depth_med": d_med, "depth_p90": d_p90})
             if out_dir is not None and fr.path in strip_pick:
@@ -220,6 +224,7 @@ def evaluate_novel_views(scene, cap, out_dir=None, *, strip_times=None, log=None
             "psnr_rgb": _nanmean(x["psnr"] for x in at), "psnr_between": _nanmean(x["psnr"] for x in bt),
             "ssim_rgb": _nanmean(x["ssim"] for x in at), "ssim_between": _nanmean(x["ssim"] for x in bt),
             "psnr": _nanmean(x["psnr"] for x in r), "psnr_observed": _nanmean(x["psnr_observed"] for x in r),
+            "psnr_moving": _nanmean(x["psnr_moving"] for x in r),
             "observed": _nanmean(x["observed"] for x in r), "coverage": _nanmean(x["coverage"] for x in r),
             "depth_med": _nanmean(x["depth_med"] for x in r), "depth_p90": _nanmean(x["depth_p90"] for x in r),
         }
@@ -232,6 +237,7 @@ def evaluate_novel_views(scene, cap, out_dir=None, *, strip_times=None, log=None
 COLUMNS = (("psnr_rgb", "PSNR@rgb", "{:.2f}"), ("psnr_between", "PSNR@btw", "{:.2f}"),
            ("ssim_rgb", "SSIM@rgb", "{:.3f}"), ("ssim_between", "SSIM@btw", "{:.3f}"),
            ("psnr", "PSNR all", "{:.2f}"), ("psnr_observed", "PSNR obs", "{:.2f}"),
+           ("psnr_moving", "PSNR mov", "{:.2f}"),
            ("observed", "obs %", "{:.1%}"), ("coverage", "cover %", "{:.1%}"),
            ("depth_med", "dErr med", "{:.1%}"), ("depth_p90", "dErr p90", "{:.1%}"))
 

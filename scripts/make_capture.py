@@ -271,11 +271,13 @@ def set_time(objs: dict, t: float, speed: float = 1.0, scene_name: str = "classi
 
 
 def orbit_eye(eye, target, side_deg: float = 0.0, up_deg: float = 0.0) -> tuple:
-    """``eye`` moved on the sphere around ``target``: ``side_deg`` of azimuth (positive: to the
-    pair's right, +X) and ``up_deg`` of elevation; same distance."""
+    """``eye`` moved on the sphere around ``target``: ``side_deg`` of azimuth about the vertical
+    through the target (positive: to the pair's left, -X, for a pair looking along +Y) and
+    ``up_deg`` of elevation; same distance. At the novel rig's ~13 deg downward view, 20 deg
+    of azimuth is 19.5 deg of arc from the pair; elevation is exact."""
     v = np.asarray(eye, np.float64) - np.asarray(target, np.float64)
     r = np.linalg.norm(v)
-    az = math.atan2(v[1], v[0]) - math.radians(side_deg)  # the pair looks along +Y: right is -azimuth
+    az = math.atan2(v[1], v[0]) - math.radians(side_deg)
     el = math.asin(v[2] / r) + math.radians(up_deg)
     return tuple(np.asarray(target) + r * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
                                                      math.sin(el)]))
@@ -310,7 +312,7 @@ def rig(rgb_size, spike_size, scene, scene_name: str = "classic", angles: dict |
     else:
         target, eyes = TARGET, dict(CAMERA_EYES)
     mid = 0.5 * (np.asarray(eyes["rgb0"]) + np.asarray(eyes["rgb1"]))
-    if scene_name == "novel":  # held out, to the left and above: 15 deg and 10 deg off the pair
+    if scene_name == "novel":  # held out, 15 deg to the right (+X) and 10 deg above the pair
         eyes["eval0"] = orbit_eye(mid, target, -15.0, 10.0)
     for name, (side, up) in (angles or {}).items():
         eyes[name] = orbit_eye(mid, target, side, up)
@@ -439,7 +441,7 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", type=float, help="motion speed multiplier (1: the demo's motion)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--eval-angles", help="extra eval cameras off the stereo pair, e.g. side10,side20,up20 "
-                                          "(degrees to the right / above, around the target)")
+                                          "(degrees of azimuth to the pair's left / of elevation, around the target)")
     ap.add_argument("--extra-eval-fps", type=float, help="frame rate of the extra eval cameras (default 60: "
                                                          "every RGB instant and the midpoint between two)")
     ap.add_argument("--depth", action=argparse.BooleanOptionalAction, default=None,

@@ -33,7 +33,9 @@ def make_capture(root: Path, *, depth=True, truth=True, tweak=None) -> Path:
         for n, x in (("rgb0", -0.1), ("rgb1", 0.1), ("eval0", 0.0)):
             rel = f"rgb/{n}/{i:06d}.png"
             (root / rel).parent.mkdir(parents=True, exist_ok=True)
-            write_png(root / rel, np.full((H, W, 3), 0.5, np.float32))
+            img = np.full((H, W, 3), 0.5, np.float32)
+            img[2:4, 2:4] = 0.5 + 0.4 * i  # something moves
+            write_png(root / rel, img)
             rec = {"file_path": rel, "camera": n, "time": t, "transform_matrix": _cam_c2w(x)}
             if depth:
                 drel = f"depth/{n}/{i:06d}.exr"

@@ -135,6 +135,7 @@ def test_table_on_a_perfect_render(tmp_path):
     row = res["cameras"]["eval0"]
     assert row["n"] == 2 and row["coverage"] == 1.0 and row["depth_med"] == 0.0 and row["psnr_rgb"] > 100
     assert row["psnr_between"] is None  # both eval instants are RGB instants
+    assert row["psnr_moving"] > 100  # the patch that changes between the two instants
     assert 0.0 < row["observed"] <= 1.0
     strips = sorted((tmp_path / "img").glob("eval0_*.png"))
     assert strips and read_image(strips[0]).shape == (6, 3 * 8 + 4, 3)

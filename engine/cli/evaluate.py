@@ -8,8 +8,11 @@ RUN/novel_view)."""
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
+
+import numpy as np
 
 HELP = "render every role:eval frame of the capture and print PSNR / SSIM as JSON (--per-camera: the novel-view table)"
 
@@ -25,15 +28,24 @@ def add_arguments(p) -> None:
 
 
 def _angle_labels(cap) -> dict:
-    """eval camera -> '20° side' from the generator record, when the capture has one."""
-    try:
-        gen = json.loads(Path(cap.transforms_path).read_text()).get("generator", {})
-    except (OSError, ValueError, TypeError):
+    """eval camera -> '19.5° off': the angle between its viewing axis and the mean viewing
+    axis of the train cameras (for cameras looking at one target: the angle they subtend)."""
+    def forward(f):
+        return -np.asarray(f.c2w, dtype=np.float64)[:3, 2]
+
+    firsts = {}
+    for f in cap.frames + cap.eval_frames:
+        firsts.setdefault(f.camera, f)
+    train = [forward(f) for n, f in firsts.items() if cap.cameras[n].role == "train"]
+    if not train:
         return {}
+    mid = np.sum(train, axis=0)
+    mid /= np.linalg.norm(mid)
     out = {}
-    for name, a in (gen.get("eval_angles") or {}).items():
-        parts = [f"{a[k]:g}° {w}" for k, w in (("side_deg", "side"), ("up_deg", "up")) if a.get(k)]
-        out[name] = ", ".join(parts)
+    for n, f in firsts.items():
+        if cap.cameras[n].role == "eval":
+            c = float(np.clip(forward(f) @ mid, -1.0, 1.0))
+            out[n] = f"{math.degrees(math.acos(c)):.1f}° off"
     return out
 
 
