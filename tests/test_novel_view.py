@@ -142,3 +142,21 @@ def test_table_on_a_perfect_render(tmp_path):
     assert (tmp_path / "img/novel_view.json").is_file()
     text = format_table(res["cameras"], {"eval0": "0° side"})
     assert "| eval0 (0° side) |" in text and "100.0%" in text
+
+
+def test_eval_per_camera_command(tmp_path, capsys, demo_capture):
+    from engine.__main__ import main
+
+    cap = make_capture(tmp_path / "c")
+    run = tmp_path / "run"
+    assert main(["train", str(cap), "--out", str(run), "--quiet", "--set", "iterations=4",
+                 "--set", "init=random", "--set", "init_random_points=200"]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(run), "--per-camera"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith("| camera | PSNR@rgb |") and "| eval0 (" in out
+    assert sorted(p.name for p in (run / "novel_view").iterdir()) == [
+        "eval0_0000.0ms.png", "novel_view.json", "novel_view.md"]
+    # a capture without ground-truth depth: a clear message, exit 1
+    assert main(["eval", str(run), str(demo_capture), "--per-camera"]) == 1
+    assert "no eval frame carries ground-truth depth" in capsys.readouterr().err

@@ -3,7 +3,7 @@
 ``--per-camera`` instead prints the novel-view table (engine.novel_view): per eval camera
 PSNR/SSIM at and between RGB instants, coverage, relative depth error against the capture's
 ground-truth depth, PSNR over the whole image and over what a train camera saw; it writes
-ground truth | render | depth-error strips and novel_view.json to ``--images`` (default
+ground truth | render | depth-error strips, novel_view.json and the table (novel_view.md) to ``--images`` (default
 RUN/novel_view)."""
 from __future__ import annotations
 
@@ -51,6 +51,7 @@ def _angle_labels(cap) -> dict:
 
 def per_camera(args) -> int:
     from ..capture import load_capture
+    from ..fileio import atomic_write
     from ..model import load_run
     from ..novel_view import evaluate_novel_views, format_table
 
@@ -63,8 +64,10 @@ def per_camera(args) -> int:
     out = args.images or Path(args.run) / "novel_view"
     out.mkdir(parents=True, exist_ok=True)
     result = evaluate_novel_views(scene, cap, out, log=lambda m: print(m, file=sys.stderr, flush=True))
-    print(format_table(result["cameras"], _angle_labels(cap)))
-    print(f"\nstrips and novel_view.json in {out}")
+    table = format_table(result["cameras"], _angle_labels(cap))
+    atomic_write(out / "novel_view.md", lambda fh: fh.write((table + "\n").encode()))
+    print(table)
+    print(f"\nstrips, novel_view.json and novel_view.md in {out}")
     return 0
 
 
