@@ -65,6 +65,9 @@ def surface_samples(obj, n: int, seed: int) -> np.ndarray:
     mesh.calc_loop_triangles()
     verts = np.array([v.co[:] for v in mesh.vertices], dtype=np.float64)
     tris = np.array([t.vertices[:] for t in mesh.loop_triangles], dtype=np.int64)
+    # Blender lists loop triangles in a run-dependent order: sort them so a seed gives one sample
+    tris = np.sort(tris, axis=1)
+    tris = tris[np.lexsort(tris.T[::-1])]
     a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     rng = np.random.default_rng(seed)

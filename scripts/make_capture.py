@@ -6,10 +6,15 @@ Run with the project's Python (``bpy`` is the Blender module)::
     .venv/bin/python scripts/make_capture.py --out demo_capture
     .venv/bin/python scripts/make_capture.py --out /tmp/big --preset large
 
-Scene (Z up, metres): a brick back wall and a checker/noise floor (static texture to
-reconstruct), a spinning checker cube, a striped ball swinging across the view in front of
-it (about 10-20 px per 30 FPS frame at 160 px wide) and a noise-textured torus spinning
-and bobbing, lit by a sharp sun plus an even sky.
+Scenes, lit by a sharp sun plus an even sky: ``classic`` (presets demo, large, fast;
+``capture_classic.py``): brick wall, checker floor, a spinning cube, a swinging striped
+ball, a bobbing torus; ``novel`` (``--preset novel``, ``capture_novel.py``): the table-top
+novel-view benchmark (weakly-textured floor, textured wall, thin parts, a fast ball, a
+turntable with letters) with eval cameras 10-30 deg off the pair (``--eval-angles``).
+
+Ground truth (``capture_truth.py``): ``--depth`` writes planar depth for every rendered
+view (``depth_file_path``); every capture gets ``ground_truth.objects`` (each moving
+object's object-to-world matrix at the light rate and surface samples).
 
 Rig (CAPTURE_FORMAT.md): ``rgb0``/``rgb1`` stereo pair (30 FPS, baseline ~11 % of the
 distance to the subject), ``spike0`` co-located with ``rgb0`` (same pose and field of
@@ -19,7 +24,8 @@ transform (plain sRGB encoding, no tone curve). The spike stream is simulated fr
 linear light rendered at the spike resolution at ``--light-hz``:
 ``engine.spike_sim.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
 gain map and a little dark current; linear white (1.0) fires every ``1/light_scale``
-frames. No ``points.ply`` is written, so the engine's stereo initialisation is exercised.
+frames. No ``points.ply`` is written unless ``--points``, so by default the engine's stereo
+initialisation is exercised.
 """
 from __future__ import annotations
 
@@ -45,6 +51,7 @@ from bt4d_addon import scene_build  # noqa: E402
 from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
 from engine.images import write_exr  # noqa: E402
 
+import capture_classic  # noqa: E402
 import capture_novel  # noqa: E402
 import capture_truth  # noqa: E402
 
@@ -69,15 +76,10 @@ PRESETS = {
 # keys that do not change the spike light (kept out of the --light-cache key)
 _NOT_LIGHT = ("eval_angles", "extra_eval_fps", "depth")
 GT_POINTS = 2000  # surface samples per moving object in ground_truth/objects.npz
+SCENES = {"classic": capture_classic, "novel": capture_novel}  # scene name -> its module
 RGB_FPS = 30.0
 SPIKE_HZ = 20000.0
 HFOV_DEG = 54.0
-TARGET = (0.0, 0.3, 0.9)
-CAMERA_EYES = {
-    "rgb0": (-0.3, -5.0, 1.4),
-    "rgb1": (0.3, -5.0, 1.4),
-    "eval0": (0.0, -4.7, 2.2),
-}
 # spike model defaults (recorded in transforms.json under spike_streams[i]["sim"])
 LIGHT_SCALE = 1.0 / 3.0   # light per spike frame for linear luminance 1.0: white fires every 3rd frame
 GAIN_STD = 0.03
@@ -86,18 +88,6 @@ PHOTONS_PER_THRESHOLD = 1000.0  # Poisson shot noise on each frame's charge
 
 
 # ----------------------------------------------------------------------------- motion
-
-def classic_poses(t: float, speed: float = 1.0) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
-    """World location and XYZ Euler rotation (radians) of each moving object at time t (s);
-    ``speed`` scales every motion (the paths stay the same, traversed ``speed`` times faster)."""
-    t = t * speed
-    ball_x = 1.6 * math.sin(10.0 * t - 1.1)  # peak 16 m/s ~ 16 px per 30 FPS frame at 160 px
-    return {
-        "cube": ((-0.75, 0.5, 0.95 + 0.15 * math.sin(9.0 * t)), (0.35, 25.0 * t, 0.6 + 18.0 * t)),
-        "ball": ((ball_x, -0.6, 1.25 + 0.25 * math.cos(12.0 * t)), (0.0, 20.0 * t, 0.0)),
-        "torus": ((1.05, 0.6, 0.75 + 0.35 * math.sin(14.0 * t + 0.5)), (1.1, 0.0, 20.0 * t)),
-    }
-
 
 # ----------------------------------------------------------------------------- scene
 
@@ -127,58 +117,6 @@ def _mix(nt, a, b, fac, blend="MIX"):
     nt.links.new(a, mix.inputs[6])
     nt.links.new(b, mix.inputs[7])
     return mix.outputs[2]
-
-
-def _bricks(nt):
-    tex = nt.nodes.new("ShaderNodeTexBrick")
-    tex.inputs["Color1"].default_value = (0.55, 0.18, 0.09, 1)
-    tex.inputs["Color2"].default_value = (0.75, 0.45, 0.25, 1)
-    tex.inputs["Mortar"].default_value = (0.85, 0.85, 0.8, 1)
-    tex.inputs["Scale"].default_value = 6.0
-    noise = nt.nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 25.0
-    return _mix(nt, tex.outputs["Color"], noise.outputs["Color"], 0.15, "MULTIPLY")
-
-
-def _floor(nt):
-    tex = nt.nodes.new("ShaderNodeTexChecker")
-    tex.inputs["Color1"].default_value = (0.8, 0.8, 0.75, 1)
-    tex.inputs["Color2"].default_value = (0.12, 0.2, 0.35, 1)
-    tex.inputs["Scale"].default_value = 8.0
-    noise = nt.nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 12.0
-    noise.inputs["Detail"].default_value = 6.0
-    return _mix(nt, tex.outputs["Color"], noise.outputs["Color"], 0.35, "OVERLAY")
-
-
-def _cube(nt):
-    tex = nt.nodes.new("ShaderNodeTexChecker")
-    tex.inputs["Color1"].default_value = (0.9, 0.15, 0.1, 1)
-    tex.inputs["Color2"].default_value = (0.95, 0.85, 0.2, 1)
-    tex.inputs["Scale"].default_value = 4.0
-    return tex.outputs["Color"]
-
-
-def _ball(nt):
-    tex = nt.nodes.new("ShaderNodeTexWave")
-    tex.wave_type = "BANDS"
-    tex.inputs["Scale"].default_value = 3.0
-    tex.inputs["Distortion"].default_value = 2.0
-    ramp = nt.nodes.new("ShaderNodeValToRGB")
-    ramp.color_ramp.elements[0].color = (0.05, 0.15, 0.8, 1)
-    ramp.color_ramp.elements[1].color = (0.95, 0.95, 0.95, 1)
-    nt.links.new(tex.outputs["Fac"], ramp.inputs["Fac"])
-    return ramp.outputs["Color"]
-
-
-def _torus(nt):
-    tex = nt.nodes.new("ShaderNodeTexVoronoi")
-    tex.inputs["Scale"].default_value = 6.0
-    ramp = nt.nodes.new("ShaderNodeValToRGB")
-    ramp.color_ramp.elements[0].color = (0.05, 0.45, 0.1, 1)
-    ramp.color_ramp.elements[1].color = (0.85, 0.95, 0.5, 1)
-    nt.links.new(tex.outputs["Distance"], ramp.inputs["Fac"])
-    return ramp.outputs["Color"]
 
 
 def build_scene(samples: int, seed: int, scene_name: str = "classic") -> tuple[bpy.types.Scene, dict]:
@@ -228,40 +166,11 @@ def build_scene(samples: int, seed: int, scene_name: str = "classic") -> tuple[b
     sun.rotation_euler = (math.radians(40), math.radians(-20), math.radians(-25))
     scene.collection.objects.link(sun)
 
-    if scene_name == "novel":
-        return scene, capture_novel.build_objects(scene, _material, _mix)
-    objs = {}
-    bpy.ops.mesh.primitive_plane_add(size=1.0)
-    wall = bpy.context.object
-    wall.name = "wall"
-    wall.scale = (10.0, 5.0, 1.0)
-    wall.rotation_euler = (math.radians(90), 0, 0)
-    wall.location = (0.0, 2.5, 2.5)
-    wall.data.materials.append(_material("bricks", _bricks))
-    bpy.ops.mesh.primitive_plane_add(size=10.0)
-    floor = bpy.context.object
-    floor.name = "floor"
-    floor.data.materials.append(_material("floor", _floor))
-
-    bpy.ops.mesh.primitive_cube_add(size=0.7)
-    objs["cube"] = bpy.context.object
-    objs["cube"].data.materials.append(_material("cube", _cube))
-    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.33, segments=32, ring_count=16)
-    objs["ball"] = bpy.context.object
-    bpy.ops.object.shade_smooth()
-    objs["ball"].data.materials.append(_material("ball", _ball))
-    bpy.ops.mesh.primitive_torus_add(major_radius=0.32, minor_radius=0.11)
-    objs["torus"] = bpy.context.object
-    bpy.ops.object.shade_smooth()
-    objs["torus"].data.materials.append(_material("torus", _torus))
-    for name, obj in objs.items():
-        obj.name = name
-        obj.rotation_mode = "XYZ"
-    return scene, objs
+    return scene, SCENES[scene_name].build_objects(scene, _material, _mix)
 
 
 def object_poses(t: float, speed: float = 1.0, scene_name: str = "classic"):
-    return (capture_novel.object_poses if scene_name == "novel" else classic_poses)(t, speed)
+    return SCENES[scene_name].object_poses(t, speed)
 
 
 def set_time(objs: dict, t: float, speed: float = 1.0, scene_name: str = "classic") -> None:
@@ -306,11 +215,7 @@ def rig(rgb_size, spike_size, scene, scene_name: str = "classic", angles: dict |
     w, h = rgb_size
     f = (w / 2.0) / math.tan(math.radians(HFOV_DEG) / 2.0)
     rgb_intr = Intrinsics(w, h, f, f, w / 2.0, h / 2.0)
-    if scene_name == "novel":
-        target = capture_novel.TARGET
-        eyes = dict(capture_novel.CAMERA_EYES)
-    else:
-        target, eyes = TARGET, dict(CAMERA_EYES)
+    target, eyes = SCENES[scene_name].TARGET, dict(SCENES[scene_name].CAMERA_EYES)
     mid = 0.5 * (np.asarray(eyes["rgb0"]) + np.asarray(eyes["rgb1"]))
     if scene_name == "novel":  # held out, 15 deg to the right (+X) and 10 deg above the pair
         eyes["eval0"] = orbit_eye(mid, target, -15.0, 10.0)

@@ -98,7 +98,7 @@ def test_demo_capture_is_small_and_moving(demo_capture):
 def test_object_ground_truth_follows_the_motion(tiny_capture):
     """Every generated capture carries ground_truth.objects: poses at the light rate."""
     sys.path.insert(0, str(REPO_ROOT / "scripts"))
-    import make_capture
+    import capture_classic
 
     cap = load_capture(tiny_capture)
     obj = cap.ground_truth.objects
@@ -106,7 +106,7 @@ def test_object_ground_truth_follows_the_motion(tiny_capture):
     truth = obj.load()
     assert truth["times"] == pytest.approx(np.arange(len(truth["times"])) / 500.0)
     for i in (0, 7, len(truth["times"]) - 1):
-        for name, (loc, _) in make_capture.classic_poses(truth["times"][i]).items():
+        for name, (loc, _) in capture_classic.object_poses(truth["times"][i]).items():
             np.testing.assert_allclose(truth[name][i][:3, 3], loc, atol=1e-6)
     assert all(f.depth_file_path is None for f in cap.frames)  # depth is opt-in outside --preset novel
 
