@@ -22,7 +22,7 @@ view, lower resolution, 20 kHz), ``eval0`` held out, above and between the pair,
 ``--eval-fps``. RGB/eval frames are 8-bit sRGB PNGs rendered with the Standard view
 transform (plain sRGB encoding, no tone curve). The spike stream is simulated from
 linear light rendered at the spike resolution at ``--light-hz``:
-``engine.spike_sim.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
+``engine.spike.simulate.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
 gain map and a little dark current; linear white (1.0) fires every ``1/light_scale``
 frames. No ``points.ply`` is written unless ``--points``, so by default the engine's stereo
 initialisation is exercised.
@@ -46,14 +46,13 @@ for _p in (REPO, REPO / "scripts"):
         sys.path.insert(0, str(_p))
 
 import bpy  # noqa: E402
-
-from bt4d_addon import scene_build  # noqa: E402
-from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
-from engine.images import write_exr  # noqa: E402
-
 import capture_classic  # noqa: E402
 import capture_novel  # noqa: E402
 import capture_truth  # noqa: E402
+
+from bt4d_addon import blender_cameras  # noqa: E402
+from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
+from engine.io.images import write_exr  # noqa: E402
 
 PRESETS = {
     # ~0.2 s, shipped with the add-on (<= 6 MB)
@@ -227,7 +226,7 @@ def rig(rgb_size, spike_size, scene, scene_name: str = "classic", angles: dict |
                           role="eval" if name.startswith("eval") else "train")
     cams["spike0"] = dict(intr=rgb_intr.scaled(*spike_size), c2w=cams["rgb0"]["c2w"].copy(), role="train")
     for name, cam in cams.items():
-        cam["object"] = scene_build.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
+        cam["object"] = blender_cameras.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
     return cams
 
 
@@ -235,7 +234,7 @@ def rig(rgb_size, spike_size, scene, scene_name: str = "classic", angles: dict |
 
 def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
     scene.camera = cam["object"]
-    scene_build.configure_render(scene, cam["intr"])
+    blender_cameras.configure_render(scene, cam["intr"])
     st = scene.render.image_settings
     if fmt == "PNG":
         st.file_format = "PNG"
@@ -254,12 +253,13 @@ def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
         raise RuntimeError(f"Cycles did not write {path}")
 
 
-def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"), stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"),
+                    stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The scene points seen by each pixel (every ``stride``-th) of the stereo pair at the
     current time, coloured from that camera's rendered frame 0: what a dense two-view
     pointmap (DUSt3R, which the paper uses and we cannot run offline) estimates, here exact.
     Pixel rays follow the OpenCV pinhole model of ``engine.cameras`` (x right, y down, z forward)."""
-    from engine.images import read_image
+    from engine.io.images import read_image
 
     bpy.context.view_layer.update()
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -289,7 +289,7 @@ def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0,
                  scene_name: str = "classic") -> np.ndarray:
     """Linear Rec.709 luminance at the spike camera for each time: (T, H, W) float32."""
     from engine.colour import luminance
-    from engine.images import read_image
+    from engine.io.images import read_image
 
     out = np.empty((len(times), cam["intr"].height, cam["intr"].width), np.float32)
     for i, t in enumerate(times):
@@ -304,7 +304,7 @@ def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0,
 
 
 def write_pointmap(scene, objs, cams, out: Path, cfg: dict) -> Path:
-    from engine.capture import write_points
+    from engine.io.points import write_points
 
     set_time(objs, 0.0, cfg["speed"], cfg.get("scene", "classic"))
     xyz, rgb = stereo_pointmap(scene, cams, out)
@@ -316,7 +316,7 @@ def write_pointmap(scene, objs, cams, out: Path, cfg: dict) -> Path:
 def write_object_truth(scene, objs, times, out: Path, cfg: dict, seed: int) -> dict:
     """ground_truth/objects.npz (times, per object [T,4,4] object-to-world and [P,3] surface
     samples in object space) and its transforms.json block."""
-    from engine.fileio import atomic_path
+    from engine.io.fileio import atomic_path
 
     mats = capture_truth.object_matrices(
         objs, times, lambda t: set_time(objs, t, cfg["speed"], cfg.get("scene", "classic")))
@@ -460,8 +460,8 @@ def main(argv=None) -> int:
         log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
             f"{spike_cam['intr'].width}x{spike_cam['intr'].height}")
 
-    from engine.spike_sim import make_gain_map, simulate_spikes
-    from engine.spikes import write_spikes
+    from engine.io.spikes import write_spikes
+    from engine.spike.simulate import make_gain_map, simulate_spikes
 
     h, w = light.shape[1:]
     gain = make_gain_map(h, w, GAIN_STD, args.seed + 1)

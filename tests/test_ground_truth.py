@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from engine.capture import load_capture
 from engine.errors import CaptureError
-from engine.images import write_exr, write_png
+from engine.io.capture import load_capture
 from engine.io.ground_truth import points_at
+from engine.io.images import write_exr, write_png
 
 W, H = 8, 6
 
@@ -89,7 +89,8 @@ def test_capture_without_ground_truth_loads_as_before(tmp_path):
 
 @pytest.mark.parametrize("tweak, match", [
     (lambda d: d["frames"][0].update(depth_file_path="depth/nope.exr"), r"frames\[0\]\.depth_file_path: depth file"),
-    (lambda d: d["eval_frames"][1].update(depth_file_path=7), r"eval_frames\[1\]\.depth_file_path: must be a non-empty string"),
+    (lambda d: d["eval_frames"][1].update(depth_file_path=7),
+     r"eval_frames\[1\]\.depth_file_path: must be a non-empty string"),
     (lambda d: d.update(ground_truth=[1]), r"ground_truth: must be an object"),
     (lambda d: d["ground_truth"]["objects"].update(rate_hz=0), r"ground_truth\.objects\.rate_hz: must be positive"),
     (lambda d: d["ground_truth"]["objects"].update(names="ball"), r"names: must be a list"),

@@ -3,23 +3,25 @@ ground-truth depth consistent with the exact pointmap, and object ground truth c
 with both."""
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from engine.cameras import project_points
-from engine.capture import load_capture, load_points
+from engine.evaluate.novel_view import observed_mask
+from engine.io.capture import load_capture
 from engine.io.ground_truth import points_at
-from engine.novel_view import observed_mask
+from engine.io.points import load_points
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT / "scripts"))
 import capture_novel  # noqa: E402
+
+pytestmark = pytest.mark.slow  # one tiny Cycles render for the module: ~40-70 s under load
 
 
 @pytest.fixture(scope="module")

@@ -1,19 +1,26 @@
-"""engine.novel_view: coverage, depth error, observed mask and the per-camera table, on cases
+"""engine.evaluate.novel_view: coverage, depth error, observed mask and the per-camera table, on cases
 with a known answer."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from test_ground_truth import make_capture
 
 from engine.cameras import GL_TO_CV, Intrinsics, View
-from engine.capture import load_capture
-from engine.images import read_image
-from engine.novel_view import (coverage, depth_error, error_heatmap, evaluate_novel_views, format_table,
-                               observed_mask, relative_depth_error, visible_in)
+from engine.evaluate.novel_view import (
+    coverage,
+    depth_error,
+    error_heatmap,
+    evaluate_novel_views,
+    format_table,
+    observed_mask,
+    relative_depth_error,
+    visible_in,
+)
+from engine.io.capture import load_capture
+from engine.io.images import read_image
 from engine.raster import rasterization
-
-from test_ground_truth import make_capture
 
 K = Intrinsics(64, 48, 40.0, 40.0, 32.0, 24.0)
 TILT = 0.3  # plane z = 2 + TILT * x (camera frame)
@@ -144,6 +151,7 @@ def test_table_on_a_perfect_render(tmp_path):
     assert "| eval0 (0° side) |" in text and "100.0%" in text
 
 
+@pytest.mark.slow  # a 4-step training run: ~13 s under load
 def test_eval_per_camera_command(tmp_path, capsys, demo_capture):
     from engine.__main__ import main
 

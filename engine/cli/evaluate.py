@@ -1,6 +1,6 @@
 """``python -m engine eval RUN [CAPTURE]``: score a run on the capture's eval frames (JSON).
 
-``--per-camera`` instead prints the novel-view table (engine.novel_view): per eval camera
+``--per-camera`` instead prints the novel-view table (engine.evaluate.novel_view): per eval camera
 PSNR/SSIM at and between RGB instants, coverage, relative depth error against the capture's
 ground-truth depth, PSNR over the whole image and over what a train camera saw; it writes
 ground truth | render | depth-error strips, novel_view.json and the table (novel_view.md) to ``--images`` (default
@@ -13,6 +13,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from ..errors import CaptureError, RunError
+from ..evaluate.heldout import evaluate
+from ..evaluate.novel_view import evaluate_novel_views, format_table
+from ..io.capture import load_capture
+from ..io.fileio import atomic_write
+from ..scene.model import load_run
 
 HELP = "render every role:eval frame of the capture and print PSNR / SSIM as JSON (--per-camera: the novel-view table)"
 
@@ -50,11 +57,6 @@ def _angle_labels(cap) -> dict:
 
 
 def per_camera(args) -> int:
-    from ..capture import load_capture
-    from ..fileio import atomic_write
-    from ..model import load_run
-    from ..novel_view import evaluate_novel_views, format_table
-
     scene = load_run(args.run, device=args.device)
     cap_path = args.capture or scene.info.get("capture")
     if not cap_path:
@@ -72,9 +74,6 @@ def per_camera(args) -> int:
 
 
 def main(args) -> int:
-    from ..errors import CaptureError, RunError
-    from ..evaluate import evaluate
-
     try:
         if args.per_camera:
             return per_camera(args)

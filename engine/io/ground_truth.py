@@ -1,21 +1,23 @@
 """Ground truth a synthetic capture may carry (CAPTURE_FORMAT: ``depth_file_path`` and the
-``ground_truth`` block; written by scripts/make_capture.py, parsed by engine.capture).
+``ground_truth`` block; written by scripts/make_capture.py, parsed by engine.io.capture).
 
 * :func:`load_depth` — a frame's planar depth EXR (metres along the viewing axis; ``inf``
   where no surface is);
+* :func:`parse_depth_path`, :func:`parse_ground_truth` — the transforms.json records, checked;
 * :class:`ObjectTruth` — moving objects' object-to-world matrices at ``rate_hz`` and
-  surface samples in object space (:meth:`ObjectTruth.load`, :meth:`ObjectTruth.points_at`).
+  surface samples in object space (:meth:`ObjectTruth.load`, :func:`points_at`).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .. import images
 from ..cameras import Intrinsics
 from ..errors import CaptureError
+from . import images
 
 
 @dataclass
@@ -99,7 +101,10 @@ def points_at(truth: dict[str, np.ndarray], name: str, t: float | np.ndarray) ->
                           np.ones((len(truth[f"{name}_points"]), 1))], axis=1)
     tq = np.atleast_1d(np.asarray(t, dtype=np.float64))
     tq = np.clip(tq, times[0], times[-1])
-    i1 = np.clip(np.searchsorted(times, tq, side="right"), 1, len(times) - 1) if len(times) > 1 else np.zeros(len(tq), int)
+    if len(times) > 1:
+        i1 = np.clip(np.searchsorted(times, tq, side="right"), 1, len(times) - 1)
+    else:
+        i1 = np.zeros(len(tq), int)
     i0 = np.maximum(i1 - 1, 0)
     span = np.where(times[i1] > times[i0], times[i1] - times[i0], 1.0)
     w = np.clip((tq - times[i0]) / span, 0.0, 1.0)[:, None, None]
@@ -107,3 +112,38 @@ def points_at(truth: dict[str, np.ndarray], name: str, t: float | np.ndarray) ->
     p1 = np.einsum("nij,pj->npi", mats[i1], pts)[..., :3]
     out = (1.0 - w) * p0 + w * p1
     return out[0] if np.ndim(t) == 0 else out
+
+
+def parse_depth_path(ctx, root: Path, d: dict, where: str) -> Path | None:
+    """A frame record's ``depth_file_path`` (absolute; None when absent), checked to exist.
+    ``ctx``: the capture's :class:`engine.io.records.CheckContext` (errors name its file)."""
+    if "depth_file_path" not in d:
+        return None
+    dfp = ctx.string(d["depth_file_path"], f"{where}.depth_file_path")
+    depth = Path(os.path.normpath(root / dfp))
+    if not depth.is_file():
+        ctx.fail(f"{where}.depth_file_path", f"depth file {dfp!r} does not exist ({depth})")
+    return depth
+
+
+def parse_ground_truth(ctx, root: Path, gt) -> GroundTruth:
+    """The ``ground_truth`` block of transforms.json, checked (files exist, types)."""
+    if not isinstance(gt, dict):
+        ctx.fail("ground_truth", f"must be an object, got {type(gt).__name__}")
+    out = GroundTruth()
+    if "objects" in gt:
+        where = "ground_truth.objects"
+        o = gt["objects"]
+        fp = ctx.string(ctx.get(o, "file_path", where), f"{where}.file_path")
+        path = Path(os.path.normpath(root / fp))
+        if not path.is_file():
+            ctx.fail(f"{where}.file_path", f"ground-truth objects file {fp!r} does not exist ({path})")
+        rate = ctx.num(ctx.get(o, "rate_hz", where), f"{where}.rate_hz", positive=True)
+        t0 = ctx.num(o.get("t0", 0.0), f"{where}.t0")
+        names = ctx.get(o, "names", where)
+        if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+            ctx.fail(f"{where}.names", f"must be a list of non-empty strings, got {names!r}")
+        if len(set(names)) != len(names) or "times" in names:
+            ctx.fail(f"{where}.names", f"must be distinct and not 'times', got {names!r}")
+        out.objects = ObjectTruth(path, rate, t0, list(names))
+    return out
