@@ -184,11 +184,11 @@ def reconstruct_job(*, progress, cancel, capture_path: str, run_dir: str, preset
 
 
 def sample_run(run_dir: str, num_samples: int = 0, device="cpu") -> dict:
-    """Open a run and sample it at K times (K = 0: automatic). No bpy."""
+    """Open a run folder or a compact cache (.bt4c) and sample it at K times (K = 0:
+    automatic). No bpy."""
     from .gaussian_nodes import auto_num_samples, sample_scene
 
-    model_mod = engine_module("model")
-    scene = model_mod.load_run(run_dir, device=device)
+    scene = engine_module("export.cached").load_result(run_dir, device=device)
     t0, t1 = scene.time_range
     k = int(num_samples) if num_samples and num_samples >= 2 else auto_num_samples(t1 - t0, scene.num_gaussians)
     samples = sample_scene(scene, k, (t0, t1))

@@ -50,11 +50,11 @@ def test_reread_renders_like_the_model(tmp_path, model, t):
     view = camera(t)
     want = render_model(model, view)
     back = ply.read_ply(ply.write_ply(tmp_path / "f.ply", splats_at(model, t)))
-    got = render_splats(back, view_tensors(view, "cpu"), model.background, model.near_plane)
+    got = render_splats(back, view_tensors(view, "cpu"), model.background, model.near_plane)["rgb"]
     assert psnr(got, want) >= 50.0
     # and the check would see a wrong instant: the scene moves between instants
     other = render_splats(ply.read_ply(ply.write_ply(tmp_path / "g.ply", splats_at(model, 0.2 - t))),
-                          view_tensors(view, "cpu"), model.background, model.near_plane)
+                          view_tensors(view, "cpu"), model.background, model.near_plane)["rgb"]
     assert psnr(other, want) < 45.0
 
 
@@ -80,7 +80,7 @@ def test_sequence_with_index(tmp_path, model):
     assert index["coordinates"]["up_axis"] == "+Z" and index["fps"] == 15.0 and index["num_frames"] == 4
     view = camera(times[2])
     got = render_splats(ply.read_sequence_frame(index_path, 2), view_tensors(view, "cpu"), model.background,
-                        model.near_plane)
+                        model.near_plane)["rgb"]
     assert psnr(got, render_model(model, view)) >= 50.0
 
 

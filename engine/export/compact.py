@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
+from ..errors import RunError
 from ..fileio import atomic_write
 from .splats import SPLAT_KEYS, check_splats
 
@@ -54,13 +55,9 @@ DEFAULT_STEPS = {"means": 2e-4, "quats": 1.0 / 512, "log_scales": 1.0 / 128, "op
 DEFAULT_LEVEL = 15
 
 
-class CompactFormatError(ValueError):
+class CompactFormatError(RunError):
     """A compact cache file is missing, truncated, corrupted or of an unknown version."""
 
-    def __init__(self, path, problem: str):
-        self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{self.path}: {problem}")
 
 
 # ----------------------------------------------------------------------------- coding

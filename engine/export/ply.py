@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement
 
+from ..errors import RunError
 from ..fileio import atomic_path, atomic_write
 from .splats import check_splats, sh_degree_of
 
@@ -38,13 +39,9 @@ COORDINATES = {
 }
 
 
-class PlyFormatError(ValueError):
+class PlyFormatError(RunError):
     """A PLY file or sequence index is missing, unreadable or lacks a property."""
 
-    def __init__(self, path, problem: str):
-        self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{self.path}: {problem}")
 
 
 def property_names(num_rest: int) -> list[str]:

@@ -70,8 +70,10 @@ def splats_to_tensors(s: dict, device="cpu") -> dict:
 
 
 def render_splats(s: dict, vt: dict, background=(0.0, 0.0, 0.0), near_plane: float = 0.01,
-                  backend: str = "auto") -> np.ndarray:
-    """Render splats into one view (``engine.model.view_tensors`` dict) -> rgb [H,W,3] in [0,1]."""
+                  backend: str = "auto") -> dict:
+    """Render splats into one view (``engine.model.view_tensors`` dict) with the engine's
+    rasterizer -> ``rgb [H,W,3]`` in [0,1], ``alpha [H,W]``, ``depth [H,W]`` (float32 numpy),
+    as ``Scene4D.render`` gives them."""
     from ..raster import rasterization
 
     with torch.no_grad():
@@ -79,7 +81,9 @@ def render_splats(s: dict, vt: dict, background=(0.0, 0.0, 0.0), near_plane: flo
         deg = sh_degree_of(a["sh"])
         colors = (eval_sh(deg, a["sh"], a["means"] - vt["campos"]) + 0.5).clamp_min(0.0)
         bg = torch.as_tensor(background, dtype=torch.float32, device=a["means"].device).reshape(1, 3)
-        rgb, _, _ = rasterization(a["means"], a["quats"], a["scales"], a["opacities"], colors, vt["viewmat"], vt["K"],
-                                  vt["width"], vt["height"], backgrounds=bg, render_depth=False,
-                                  near_plane=near_plane, backend=backend)
-        return _np(rgb[0].clamp(0, 1))
+        rgb, alpha, meta = rasterization(a["means"], a["quats"], a["scales"], a["opacities"], colors, vt["viewmat"],
+                                         vt["K"], vt["width"], vt["height"], backgrounds=bg, render_depth=True,
+                                         near_plane=near_plane, backend=backend)
+        depth = meta.get("depths")
+        return {"rgb": _np(rgb[0].clamp(0, 1)), "alpha": _np(alpha[0, ..., 0]),
+                "depth": _np(depth[0, ..., 0]) if depth is not None else np.zeros(alpha.shape[1:3], np.float32)}
