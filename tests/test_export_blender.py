@@ -17,7 +17,8 @@ def run_dir(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("bt4d_export") / "run"
     model = moving_model(n=120, sh_degree=1)
-    save_checkpoint(d, {"model": model.state(), "step": 1, "total_steps": 1, "time_range": list(TIME_RANGE), "gaussians": 120})
+    save_checkpoint(d, {"model": model.state(), "step": 1, "total_steps": 1, "time_range": list(TIME_RANGE),
+                        "gaussians": 120})
     return d
 
 

@@ -89,9 +89,11 @@ class LPIPS(nn.Module):
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         if x.shape != y.shape or x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"LPIPS wants two [B,3,H,W] batches of one shape, got {tuple(x.shape)} and {tuple(y.shape)}")
+            raise ValueError(f"LPIPS wants two [B,3,H,W] batches of one shape, got {tuple(x.shape)} "
+                             f"and {tuple(y.shape)}")
         if min(x.shape[-2:]) < MIN_SIZE:
-            raise ValueError(f"LPIPS needs images of at least {MIN_SIZE}x{MIN_SIZE} px, got {x.shape[-1]}x{x.shape[-2]}")
+            raise ValueError(f"LPIPS needs images of at least {MIN_SIZE}x{MIN_SIZE} px, "
+                             f"got {x.shape[-1]}x{x.shape[-2]}")
         fx, fy = self.features(x * 2.0 - 1.0), self.features(y * 2.0 - 1.0)
         total = x.new_zeros(x.shape[0])
         for lin, a, b in zip(self.lins, fx, fy):

@@ -37,7 +37,8 @@ class CachedScene:
         self.run_dir = self.path  # where a run's files would be; the cache itself
         meta = self.cache.meta
         self.info = {**(meta.get("run_info") or {}), "capture": meta.get("capture"), "source": meta.get("source"),
-                     "time_range": [float(self.cache.times[0]), float(self.cache.times[-1])], "compact_cache": str(path)}
+                     "time_range": [float(self.cache.times[0]), float(self.cache.times[-1])],
+                     "compact_cache": str(path)}
         self.time_range = (float(self.cache.times[0]), float(self.cache.times[-1]))
         self.background = tuple(float(b) for b in meta.get("background", (0.0, 0.0, 0.0)))
         self.near_plane = float(meta.get("near_plane", 0.01))
@@ -84,7 +85,7 @@ def run_meta(scene) -> dict:
     info = dict(scene.info)
     return {"capture": info.get("capture"), "source": str(getattr(scene, "run_dir", "")),
             "background": [float(b) for b in scene.background],
-            "near_plane": float(getattr(getattr(scene, "model", None), "near_plane", getattr(scene, "near_plane", 0.01))),
+            "near_plane": float(getattr(getattr(scene, "model", scene), "near_plane", 0.01)),
             "run_info": {k: info.get(k) for k in ("preset", "step", "total_steps") if info.get(k) is not None}}
 
 

@@ -145,7 +145,8 @@ def encode(times, frames: list[dict], *, steps: dict | None = None, level: int =
             offset += len(data)
     header = {"format": "bullettime4d-compact", "version": VERSION, "times": times.tolist(), "num_gaussians": n,
               "sh_bases": k_sh, "steps": abs_steps, "relative_steps": {**DEFAULT_STEPS, **(steps or {})},
-              "zstd_level": int(level), "layout": "per attribute: canonical [C,N], residuals [C,N,T-1]; zigzag byte planes",
+              "zstd_level": int(level),
+              "layout": "per attribute: canonical [C,N], residuals [C,N,T-1]; zigzag byte planes",
               "meta": meta or {}, "blocks": blocks}
     hb = json.dumps(header).encode()
     return _PREFIX.pack(MAGIC, VERSION, len(hb)) + hb + b"".join(payload)

@@ -154,7 +154,8 @@ def read_index(path) -> dict:
     if not isinstance(index, dict) or index.get("format") != INDEX_FORMAT:
         raise PlyFormatError(path, f"not a {INDEX_FORMAT} index")
     if int(index.get("version", 0)) > INDEX_VERSION:
-        raise PlyFormatError(path, f"index version {index.get('version')} is newer than this engine reads ({INDEX_VERSION})")
+        raise PlyFormatError(path, f"index version {index.get('version')} is newer than this engine reads "
+                                   f"({INDEX_VERSION})")
     frames = index.get("frames")
     if not isinstance(frames, list) or not all(isinstance(f, dict) and "file" in f and "time" in f for f in frames):
         raise PlyFormatError(path, "'frames' must be a list of {file, time, count}")
