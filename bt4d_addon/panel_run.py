@@ -49,7 +49,8 @@ class BT4D_RunState(PropertyGroup):
     has_metrics: BoolProperty(default=False)
     metric_psnr: FloatProperty(name="PSNR", precision=2)
     metric_ssim: FloatProperty(name="SSIM", precision=4)
-    metric_lpips: FloatProperty(name="LPIPS", precision=4, description="LPIPS-Alex on the held-out frames (lower is better)")
+    metric_lpips: FloatProperty(name="LPIPS", precision=4, default=-1.0,
+                                description="LPIPS-Alex on the held-out frames (lower is better; -1: not measured)")
     metric_psnr_interframe: FloatProperty(name="PSNR between RGB frames", precision=2)
     metric_psnr_dynamic: FloatProperty(name="PSNR dynamic regions", precision=2)
     metric_frames: IntProperty(name="Eval frames")
@@ -114,7 +115,7 @@ def draw_result(layout, context) -> None:
         g = box.grid_flow(columns=2, align=True)
         g.label(text=f"PSNR {r.metric_psnr:.2f} dB")
         g.label(text=f"SSIM {r.metric_ssim:.3f}")
-        g.label(text=f"LPIPS {r.metric_lpips:.3f}")
+        g.label(text=f"LPIPS {r.metric_lpips:.3f}" if r.metric_lpips >= 0 else "LPIPS n/a")
         g.label(text=f"Between frames {r.metric_psnr_interframe:.2f} dB")
         g.label(text=f"Dynamic {r.metric_psnr_dynamic:.2f} dB")
         box.label(text=f"{r.metric_frames} frames, trained {_fmt_time(r.train_seconds)}")

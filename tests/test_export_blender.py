@@ -102,3 +102,16 @@ def test_load_result_rejects_a_foreign_file(scene, tmp_path):
     bad.write_bytes(b"hello")
     with pytest.raises(RuntimeError, match="notacache.bt4c: neither a run directory nor"):
         bpy.ops.bt4d.load_result(filepath=str(bad))
+
+
+def test_result_box_shows_lpips(scene):
+    import inspect
+
+    blender_util.enable_addon()
+    rec = __import__(f"{blender_util.ADDON_MODULE}.operators.reconstruct", fromlist=["apply_metrics"])
+    panel_run = __import__(f"{blender_util.ADDON_MODULE}.bt4d_addon.panel_run", fromlist=["draw_result"])
+    rec.apply_metrics(scene, {"psnr": 21.5, "ssim": 0.7, "lpips": 0.1234, "n_frames": 3}, {})
+    assert scene.bt4d_run.metric_lpips == pytest.approx(0.1234)
+    rec.apply_metrics(scene, {"psnr": 21.5}, {})  # an older metrics.json without lpips
+    assert scene.bt4d_run.metric_lpips == -1.0  # shown as "LPIPS n/a", not as a perfect 0
+    assert "LPIPS {r.metric_lpips" in inspect.getsource(panel_run.draw_result)
