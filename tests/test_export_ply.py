@@ -133,3 +133,20 @@ def test_crash_mid_write_leaves_old_file(tmp_path, model, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         ply.write_ply(path, splats_at(model, 0.1))
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["keep.ply"]
+
+
+def test_degree_three_has_45_f_rest_and_round_trips(tmp_path):
+    rng = np.random.default_rng(5)
+    n = 7
+    s = {"means": rng.normal(size=(n, 3)), "quats": rng.normal(size=(n, 4)), "log_scales": rng.normal(size=(n, 3)),
+         "opacity_logits": rng.normal(size=n), "sh": rng.normal(size=(n, 16, 3))}
+    s = {k: v.astype(np.float32) for k, v in s.items()}
+    path = ply.write_ply(tmp_path / "d3.ply", s)
+    el = PlyData.read(str(path))["vertex"]
+    assert sum(p.name.startswith("f_rest_") for p in el.properties) == 45
+    # 3DGS: f_rest_{c*15 + j} is coefficient j+1 of channel c
+    np.testing.assert_array_equal(el.data["f_rest_29"], s["sh"][:, 15, 1])
+    np.testing.assert_array_equal(el.data["f_rest_30"], s["sh"][:, 1, 2])
+    back = ply.read_ply(path)
+    for k in s:
+        np.testing.assert_array_equal(back[k], s[k])
