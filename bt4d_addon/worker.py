@@ -206,7 +206,7 @@ def render_views_job(*, progress, cancel, scene4d, views: list, outputs: list, f
     import numpy as np
 
     colour = engine_module("colour")
-    images = engine_module("images")
+    images = engine_module("io.images")
     written = []
     t_start = time.monotonic()
     for i, (view, path) in enumerate(zip(views, outputs)):

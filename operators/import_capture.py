@@ -82,7 +82,7 @@ class ImportPlan:
 
 
 def _image_size(path: Path):
-    from ..engine.images import read_image_size
+    from ..engine.io.images import read_image_size
 
     try:
         return read_image_size(path)
@@ -127,7 +127,7 @@ def _sequence_plan(frames, plan_frame_of, frame_start: int, frame_end: int) -> S
 
 def plan_import(path, fps: int = 0) -> ImportPlan:
     """Load and validate a capture into an ImportPlan. Raises CaptureError; creates no bpy data."""
-    from ..engine.capture import load_capture
+    from ..engine.io.capture import load_capture
     from ..engine.errors import CaptureError
 
     cap = load_capture(path)

@@ -44,7 +44,7 @@ def get_scene4d(run_dir: str):
     key = (str(run_dir), ck.stat().st_mtime if ck.exists() else None)
     if key not in _SCENE4D_CACHE:
         _SCENE4D_CACHE.clear()
-        _SCENE4D_CACHE[key] = worker.engine_module("model").load_run(run_dir, device="cpu")
+        _SCENE4D_CACHE[key] = worker.engine_module("scene.model").load_run(run_dir, device="cpu")
     return _SCENE4D_CACHE[key]
 
 

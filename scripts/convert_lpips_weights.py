@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "engine" / "evaluate" / "lpips_alex.npz")
     p.add_argument("--float32", action="store_true", help="keep float32 (twice the size)")
     args = p.parse_args(argv)
-    from engine.fileio import atomic_path  # engine.io.fileio after the layout move
+    from engine.io.fileio import atomic_path
 
     arrays = convert(args.ckpt, np.float32 if args.float32 else np.float16)
     arrays["source_sha256"] = np.array(hashlib.sha256(args.ckpt.read_bytes()).hexdigest())

@@ -5,9 +5,9 @@ import numpy as np
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.deformation import DeformationField
-from engine.gaussians import GaussianModel
-from engine.model import Model4D, view_tensors
+from engine.scene.deformation import DeformationField
+from engine.scene.gaussians import GaussianModel
+from engine.scene.model import Model4D, view_tensors
 
 TIME_RANGE = (0.0, 0.2)
 

@@ -1,4 +1,4 @@
-"""A tiny stand-in for engine.model.Scene4D: Gaussians moving linearly in time, rendered by
+"""A tiny stand-in for engine.scene.model.Scene4D: Gaussians moving linearly in time, rendered by
 an obviously-correct numpy EWA splatter (3DGS rules: 0.3 px^2 dilation, pixel centres at
 +0.5, alpha capped at 0.99, alpha < 1/255 skipped, front-to-back by depth)."""
 from __future__ import annotations
@@ -82,7 +82,7 @@ def make_fake_capture(root, *, width=64, height=48, rgb_fps=30.0, eval_fps=150.0
     from pathlib import Path
 
     from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.images import write_png
+    from engine.io.images import write_png
 
     root = Path(root)
     model = FakeScene4D(n=n, seed=seed, time_range=(0.0, duration))

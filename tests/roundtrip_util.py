@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-import pytest
-
 import blender_util
+import pytest
 
 MY_OPERATOR_MODULES = ("reconstruct", "load_result", "render_path", "bullet_time")
 

@@ -11,9 +11,8 @@ import textwrap
 import tomllib
 import zipfile
 
-import pytest
-
 import blender_util
+import pytest
 from blender_util import REPO_ROOT
 
 
@@ -64,10 +63,12 @@ def test_zip_holds_the_extension_and_nothing_else(built_zip):
     names = zipfile.ZipFile(built_zip).namelist()
     for required in ("blender_manifest.toml", "__init__.py", "bt4d_addon/__init__.py", "bt4d_addon/panel.py",
                      "operators/__init__.py", "operators/import_capture.py", "engine/__init__.py",
-                     "engine/capture.py", "demo_capture/transforms.json"):
+                     "engine/io/capture.py", "engine/train/trainer.py", "demo_capture/transforms.json"):
         assert required in names, required
     for n in names:
-        assert not n.startswith(("tests/", "scripts/", ".venv/", ".git", ".ci/", "runs/", "dist/", "build/")), n
+        assert not n.startswith(("tests/", "scripts/", "tools/", ".venv/", ".git", ".ci/", "runs/", "dist/",
+                                 "build/")), n
+        assert not any(w in n for w in ("bench", "stress", "ablate", "synthetic")), n  # development tools
         assert "__pycache__" not in n and not n.endswith(".pyc"), n
         assert not n.split("/")[-1].startswith("."), n
     assert built_zip.stat().st_size < 20e6

@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from export_util import camera, moving_model, render_model
 
+from engine.evaluate.metrics import psnr
 from engine.export import compact
 from engine.export.splats import SPLAT_KEYS, render_splats, splats_at
-from engine.metrics import psnr
-from engine.model import view_tensors
-
-from export_util import camera, moving_model, render_model
+from engine.scene.model import view_tensors
 
 TIMES = np.linspace(0.0, 0.2, 9)
 

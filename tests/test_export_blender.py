@@ -2,10 +2,9 @@
 (Result panel + File > Export) and bpy.ops.bt4d.load_result on a compact cache (.bt4c)."""
 from __future__ import annotations
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 from export_util import TIME_RANGE, moving_model
 
 bpy = pytest.importorskip("bpy")
@@ -13,7 +12,7 @@ bpy = pytest.importorskip("bpy")
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    from engine.checkpoint import save_checkpoint
+    from engine.io.checkpoint import save_checkpoint
 
     d = tmp_path_factory.mktemp("bt4d_export") / "run"
     model = moving_model(n=120, sh_degree=1)
@@ -31,7 +30,7 @@ def scene():
 def test_export_ply_operator_writes_a_sequence(scene, run_dir, tmp_path):
     from engine.export import ply
     from engine.export.splats import splats_at
-    from engine.model import load_run
+    from engine.scene.model import load_run
 
     out = tmp_path / "plys"
     assert bpy.ops.bt4d.export_ply(directory=str(out), source=str(run_dir), fps=20.0) == {"FINISHED"}

@@ -3,20 +3,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from export_util import TIME_RANGE, camera, moving_model
 
 from engine.__main__ import main
+from engine.evaluate.metrics import psnr
 from engine.export import ply
 from engine.export.cached import CachedScene, load_result
 from engine.export.splats import render_splats, splats_at
-from engine.metrics import psnr
-from engine.model import load_run, view_tensors
-
-from export_util import TIME_RANGE, camera, moving_model
+from engine.scene.model import load_run, view_tensors
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    from engine.checkpoint import save_checkpoint
+    from engine.io.checkpoint import save_checkpoint
 
     d = tmp_path_factory.mktemp("export_cli") / "run"
     model = moving_model(n=200, sh_degree=1)

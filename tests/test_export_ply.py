@@ -6,14 +6,13 @@ import json
 
 import numpy as np
 import pytest
+from export_util import camera, moving_model, render_model
 from plyfile import PlyData, PlyElement
 
+from engine.evaluate.metrics import psnr
 from engine.export import ply
 from engine.export.splats import render_splats, splats_at
-from engine.metrics import psnr
-from engine.model import view_tensors
-
-from export_util import camera, moving_model, render_model
+from engine.scene.model import view_tensors
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 
@@ -47,7 +46,7 @@ def _cam(k: Intrinsics, role="train"):
 def make_capture(root: Path, *, n_rgb=3, rgb_fps=30.0, eval_fps=90.0, moving_left=False,
                  spike_frames=100, seed=0) -> Path:
     """A small capture: left/right (train), spk (spikes, co-located with left), ev (eval)."""
-    from engine.spikes import write_spikes
+    from engine.io.spikes import write_spikes
 
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
@@ -128,7 +127,7 @@ def shown_file(cam_obj, scene_frame: int) -> int:
 # ----------------------------------------------------------------------------- the demo capture
 
 def test_import_demo_capture(scene, demo_capture):
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     cap = load_capture(demo_capture)
     before = blender_util.datablock_counts()
@@ -196,7 +195,7 @@ def addon_module(sub: str):
 
 def test_projection_matches_pinhole_model(scene, tiny):
     """World points land within 0.5 px of engine.cameras.project_points (fx != fy, off-centre)."""
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     cap = load_capture(tiny)
     assert import_capture(tiny) == {"FINISHED"}
@@ -249,7 +248,7 @@ def test_camera_params_round_trip(addon, scene, k):
 
 
 def test_moving_camera_is_keyframed_per_frame_time(scene, tmp_path):
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     root = make_capture(tmp_path / "moving", moving_left=True, n_rgb=4)
     cap = load_capture(root)
@@ -265,7 +264,7 @@ def test_moving_camera_is_keyframed_per_frame_time(scene, tmp_path):
 
 def test_fps_option_and_eval_sequence(scene, tiny):
     """fps=90 puts the 90 FPS eval camera one file per scene frame, the 30 FPS RGB every 3rd."""
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     t0, t1 = load_capture(tiny).time_range   # the spike stream (0.1 s) outlasts the RGB frames
     assert import_capture(tiny, fps=90) == {"FINISHED"}

@@ -9,10 +9,9 @@ import subprocess
 import sys
 import textwrap
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 import roundtrip_util
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 
@@ -43,7 +42,7 @@ def _instance_positions(obj):
 
 def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     from engine.colour import srgb_to_linear
-    from engine.model import load_run
+    from engine.scene.model import load_run
 
     run_dir = reconstructed["run_dir"]
     obj, gn = _load(run_dir, num_samples=4)
@@ -93,10 +92,11 @@ def _cycles_setup(scene, cam, res_pct=40, samples=16):
         scene.world = bpy.data.worlds.new("black")
 
 
+@pytest.mark.slow
 def test_cycles_render_matches_engine(rt_scene, reconstructed, demo_capture, tmp_path):
     from engine.colour import linear_to_srgb
-    from engine.images import read_image_rgba
-    from engine.model import load_run
+    from engine.io.images import read_image_rgba
+    from engine.scene.model import load_run
 
     bc = roundtrip_util.addon_module("bt4d_addon.blender_cameras")
     assert bpy.ops.bt4d.import_capture(directory=str(demo_capture)) == {"FINISHED"}

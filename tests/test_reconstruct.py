@@ -8,9 +8,8 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
-
 import blender_util
+import pytest
 import roundtrip_util
 
 bpy = pytest.importorskip("bpy")

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 import roundtrip_util
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 
@@ -23,8 +22,8 @@ def _setup(run_dir, demo_capture):
 
 def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_path):
     from engine.colour import linear_to_srgb
-    from engine.images import read_exr_channels
-    from engine.model import load_run
+    from engine.io.images import read_exr_channels
+    from engine.scene.model import load_run
 
     scene, obj, gn = _setup(reconstructed["run_dir"], demo_capture)
     scene.frame_start, scene.frame_end = 1, 4
@@ -74,7 +73,7 @@ def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_pat
 
 
 def test_unfrozen_time_changes_images_and_png_numbering(rt_scene, reconstructed, demo_capture, tmp_path):
-    from engine.images import read_image_rgba
+    from engine.io.images import read_image_rgba
 
     scene, obj, gn = _setup(reconstructed["run_dir"], demo_capture)
     scene.camera = bpy.data.objects["eval0"]  # static camera
@@ -104,9 +103,10 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     EXR Z where something was hit, and cancel keeps the frames written so far."""
     import threading
 
-    from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.images import read_exr_channels, read_image_rgba
     from roundtrip_fakes import FakeScene4D
+
+    from engine.cameras import Intrinsics, View, look_at_c2w
+    from engine.io.images import read_exr_channels, read_image_rgba
 
     worker = roundtrip_util.addon_module("bt4d_addon.worker")
     model = FakeScene4D(n=10, seed=2)

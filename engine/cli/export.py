@@ -1,6 +1,6 @@
 """``python -m engine export RESULT --out PATH [--format npz|ply|compact] [--fps F | --times T0 T1 N]``.
 
-* ``npz`` (default): the raw sampled arrays (``engine.model.export_npz``);
+* ``npz`` (default): the raw sampled arrays (``engine.export.npz.export_npz``);
 * ``ply``: ``PATH/frame_000000.ply ...`` in the 3DGS layout plus ``PATH/index.json``;
 * ``compact``: one DynTCG-style compact 4D cache file (``.bt4c``), which ``eval``, ``render``,
   ``export`` and Blender's Load Result open like a run.
@@ -11,6 +11,14 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import RunError
+from ..export import compact, ply
+from ..export.cached import CachedScene, load_result, run_meta, sample_splats
+from ..export.npz import export_npz
 
 HELP = "export the Gaussians over time: raw .npz arrays, a 3DGS PLY sequence, or a compact 4D cache"
 FORMATS = ("npz", "ply", "compact")
@@ -33,8 +41,6 @@ def add_arguments(p) -> None:
 def export_times(time_range, fps=None, times=None):
     """The export instants: ``fps`` over ``time_range`` (both ends included), or ``times``
     = (T0, T1, N), or 31 instants over the range."""
-    import numpy as np
-
     t0, t1 = float(time_range[0]), float(time_range[1])
     if fps is not None:
         if not fps > 0:
@@ -51,13 +57,6 @@ def export_times(time_range, fps=None, times=None):
 
 
 def main(args) -> int:
-    from tqdm import tqdm
-
-    from ..errors import RunError
-    from ..export import compact, ply
-    from ..export.cached import CachedScene, load_result, run_meta, sample_splats
-    from ..model import export_npz
-
     fmt = args.format or ("compact" if str(args.out).endswith(".bt4c") else "npz")
     out = Path(args.out)
     try:

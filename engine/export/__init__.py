@@ -1,1 +1,5 @@
-"""Writers of trained results to files other tools read (PLY sequences, compact 4D caches)."""
+"""Results out of a trained run: rendered views (PNG / EXR), the raw ``.npz`` cache, 3DGS PLY
+sequences (``ply``), the compact 4D cache (``compact``) and opening either form (``cached``).
+
+May import: foundations, ``engine.io``, ``engine.raster``, ``engine.scene``.
+"""

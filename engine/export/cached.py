@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import RunError
-from ..gaussians import SH_C0
-from ..model import load_run, view_tensors
+from ..scene.gaussians import SH_C0
+from ..scene.model import load_run, view_tensors
 from .compact import MAGIC, CompactFormatError, read_compact
 from .splats import render_splats, splats_at
 

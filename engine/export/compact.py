@@ -42,7 +42,7 @@ import numpy as np
 import zstandard
 
 from ..errors import RunError
-from ..fileio import atomic_write
+from ..io.fileio import atomic_write
 from .splats import SPLAT_KEYS, check_splats
 
 MAGIC = b"BT4DC\x00\r\n"

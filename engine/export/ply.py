@@ -24,7 +24,7 @@ import numpy as np
 from plyfile import PlyData, PlyElement
 
 from ..errors import RunError
-from ..fileio import atomic_path, atomic_write
+from ..io.fileio import atomic_path, atomic_write
 from .splats import check_splats, sh_degree_of
 
 INDEX_NAME = "index.json"

@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..gaussians import SH_C0, eval_sh, num_sh_bases
+from ..raster import rasterization
+from ..scene.gaussians import SH_C0, eval_sh, num_sh_bases
 
 SPLAT_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 # logits of opacities saturated in float32 (sigmoid(x) == 1 for x > 16.6) stay finite
@@ -71,11 +72,9 @@ def splats_to_tensors(s: dict, device="cpu") -> dict:
 
 def render_splats(s: dict, vt: dict, background=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                   backend: str = "auto") -> dict:
-    """Render splats into one view (``engine.model.view_tensors`` dict) with the engine's
+    """Render splats into one view (``engine.scene.model.view_tensors`` dict) with the engine's
     rasterizer -> ``rgb [H,W,3]`` in [0,1], ``alpha [H,W]``, ``depth [H,W]`` (float32 numpy),
     as ``Scene4D.render`` gives them."""
-    from ..raster import rasterization
-
     with torch.no_grad():
         a = splats_to_tensors(s, vt["viewmat"].device)
         deg = sh_degree_of(a["sh"])
