@@ -6,19 +6,23 @@ import sys
 
 from ..errors import CaptureError, RunError
 from ..evaluate.heldout import evaluate
+from ..export.cached import CachedScene, load_result
 
-HELP = "render every role:eval frame of the capture and print PSNR / SSIM as JSON"
+HELP = "render every role:eval frame of the capture and print PSNR / SSIM / LPIPS as JSON"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("run", help="run directory")
+    p.add_argument("run", help="run directory, or a compact cache (.bt4c; scored without writing files)")
     p.add_argument("capture", nargs="?", default=None, help="capture folder (default: the one recorded in run.json)")
     p.add_argument("--device", default="cpu")
 
 
 def main(args) -> int:
     try:
-        result = evaluate(args.run, args.capture, device=args.device)
+        scene = load_result(args.run, device=args.device)
+        # a cache is a single file: its scores are printed, nothing is written beside it
+        result = evaluate(args.run, args.capture, device=args.device, scene=scene,
+                          write=not isinstance(scene, CachedScene))
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
