@@ -80,3 +80,39 @@ def test_export_errors(run_dir, tmp_path, capsys):
     assert main(["export", str(run_dir), "--fps", "-3", "--format", "ply", "--out", str(tmp_path / "o")]) == 1
     assert "--fps must be positive" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.fixture()
+def small_capture(demo_capture, tmp_path):
+    """The demo capture with 4 of its 61 eval frames (files linked, not copied)."""
+    import json
+
+    root = tmp_path / "cap"
+    root.mkdir()
+    for p in demo_capture.iterdir():
+        if p.name != "transforms.json":
+            (root / p.name).symlink_to(p.resolve(), target_is_directory=p.is_dir())
+    meta = json.loads((demo_capture / "transforms.json").read_text())
+    meta["eval_frames"] = meta["eval_frames"][10:14]
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+@pytest.mark.slow  # 30 s under load: two evals with LPIPS
+def test_eval_scores_a_compact_cache_like_its_run(run_dir, small_capture, tmp_path, capsys):
+    import json
+
+    cache = tmp_path / "s.bt4c"
+    assert main(["export", str(run_dir), "--format", "compact", "--fps", "300", "--out", str(cache)]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(run_dir), str(small_capture)]) == 0
+    by_run = json.loads(capsys.readouterr().out)
+    assert main(["eval", str(cache), str(small_capture)]) == 0
+    by_cache = json.loads(capsys.readouterr().out)
+    assert by_run["n_frames"] == by_cache["n_frames"] == 4
+    assert 0 < by_run["lpips"] < 1 and abs(by_cache["lpips"] - by_run["lpips"]) < 0.01
+    assert abs(by_cache["psnr"] - by_run["psnr"]) < 0.2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "s.bt4c"]  # nothing written beside the cache
+    # a cache whose run recorded no capture needs one on the command line
+    assert main(["eval", str(cache)]) == 1
+    assert "s.bt4c: no capture recorded" in capsys.readouterr().err
