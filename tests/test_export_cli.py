@@ -116,3 +116,15 @@ def test_eval_scores_a_compact_cache_like_its_run(run_dir, small_capture, tmp_pa
     # a cache whose run recorded no capture needs one on the command line
     assert main(["eval", str(cache)]) == 1
     assert "s.bt4c: no capture recorded" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # ~10 s under load
+def test_compact_steps_tool_prints_the_table(run_dir, small_capture, capsys):
+    from tools.__main__ import main as tools_main
+
+    assert tools_main(["compact-steps", str(run_dir), str(small_capture), "--fps", "100", "--scales", "1", "8"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(("| 1 |", "| 8 |"))]
+    assert len(rows) == 2
+    size = [float(r.split("|")[2]) for r in rows]
+    fidelity = [float(r.split("|")[7]) for r in rows]
+    assert size[1] < size[0] and fidelity[1] < fidelity[0] and fidelity[0] > 35.0

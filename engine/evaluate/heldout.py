@@ -101,7 +101,7 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         "train_seconds": _round(run_info.get("train_seconds"), 2),
         "num_gaussians": scene.num_gaussians,
         "render_seconds": round(render_s, 3),
-        "preset": run_info.get("preset"),
+        "preset": run_info.get("preset", info.get("preset")),
         "step": info.get("step"),
         "run_dir": str(run_dir.resolve()),
         "capture": str(getattr(cap, "root", capture)),

@@ -207,21 +207,16 @@ class CompactCache:
         return out
 
 
-def read_header(path) -> tuple[dict, int]:
-    """(header, payload offset) of a cache file; CompactFormatError if unusable."""
-    path = Path(path)
-    if not path.is_file():
-        raise CompactFormatError(path, "compact cache does not exist")
-    with open(path, "rb") as fh:
-        prefix = fh.read(_PREFIX.size)
-        if len(prefix) < _PREFIX.size:
-            raise CompactFormatError(path, f"truncated: {len(prefix)} bytes, shorter than the file prefix")
-        magic, version, hlen = _PREFIX.unpack(prefix)
-        if magic != MAGIC:
-            raise CompactFormatError(path, "not a BulletTime4D compact cache (bad magic bytes)")
-        if version > VERSION:
-            raise CompactFormatError(path, f"cache version {version} is newer than this engine reads ({VERSION})")
-        hb = fh.read(hlen)
+def _parse_header(data: bytes, path) -> tuple[dict, int]:
+    """(header, payload offset) from a cache's bytes; CompactFormatError naming ``path``."""
+    if len(data) < _PREFIX.size:
+        raise CompactFormatError(path, f"truncated: {len(data)} bytes, shorter than the file prefix")
+    magic, version, hlen = _PREFIX.unpack(data[:_PREFIX.size])
+    if magic != MAGIC:
+        raise CompactFormatError(path, "not a BulletTime4D compact cache (bad magic bytes)")
+    if version > VERSION:
+        raise CompactFormatError(path, f"cache version {version} is newer than this engine reads ({VERSION})")
+    hb = data[_PREFIX.size:_PREFIX.size + hlen]
     if len(hb) < hlen:
         raise CompactFormatError(path, f"truncated inside the header ({len(hb)} of {hlen} bytes)")
     try:
@@ -236,15 +231,30 @@ def read_header(path) -> tuple[dict, int]:
     return header, _PREFIX.size + hlen
 
 
+def read_header(path) -> dict:
+    """The header of a cache file (times, counts, steps, blocks); CompactFormatError if unusable."""
+    return _parse_header(_read_bytes(path), path)[0]
+
+
+def _read_bytes(path) -> bytes:
+    path = Path(path)
+    if not path.is_file():
+        raise CompactFormatError(path, "compact cache does not exist")
+    return path.read_bytes()
+
+
 def read_compact(path) -> CompactCache:
     """Decode a cache file. CompactFormatError naming the file on any damage."""
-    path = Path(path)
-    header, start = read_header(path)
-    size = path.stat().st_size
+    return decode(_read_bytes(path), path)
+
+
+def decode(data: bytes, path="<bytes>") -> CompactCache:
+    """Decode a cache from its bytes (``path`` names it in errors)."""
+    header, start = _parse_header(data, path)
     end = start + max(int(b["offset"]) + int(b["size"]) for b in header["blocks"])
-    if size < end:
-        raise CompactFormatError(path, f"truncated: {size} bytes, the header promises {end}")
-    payload = path.read_bytes()[start:end]
+    if len(data) < end:
+        raise CompactFormatError(path, f"truncated: {len(data)} bytes, the header promises {end}")
+    payload = data[start:end]
     steps = header["steps"]
     T, n = len(header["times"]), int(header["num_gaussians"])
     attrs = {}
