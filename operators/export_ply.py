@@ -14,26 +14,12 @@ import bpy
 from bpy.props import FloatProperty, StringProperty
 from bpy.types import Operator
 
-from ..bt4d_addon import worker
+from ..bt4d_addon import engine_bridge
 
 
 def default_source(scene) -> str:
     run = getattr(scene, "bt4d_run", None)
     return run.run_dir if run is not None and run.run_dir else ""
-
-
-def export_sequence(source: str, out_dir: str, fps: float, progress=None) -> dict:
-    """Engine side (no bpy): sample ``source`` at ``fps`` and write the sequence."""
-    cached = worker.engine_module("export.cached")
-    ply = worker.engine_module("export.ply")
-    scene4d = cached.load_result(source)
-    t0, t1 = scene4d.time_range
-    n = int((t1 - t0) * fps + 1e-6) + 1
-    times = [t0 + i / fps for i in range(n)]
-    meta = cached.run_meta(scene4d)
-    index = ply.write_sequence(out_dir, times, cached.sample_splats(scene4d), fps=fps, source=meta["source"],
-                               background=meta["background"], progress=progress)
-    return {"index": str(index), "frames": n, "gaussians": scene4d.num_gaussians}
 
 
 class BT4D_OT_export_ply(Operator):
@@ -70,7 +56,8 @@ class BT4D_OT_export_ply(Operator):
         wm = context.window_manager
         wm.progress_begin(0, 100)
         try:
-            info = export_sequence(source, out_dir, fps, progress=lambda i, n: wm.progress_update(int(100 * i / n)))
+            info = engine_bridge.export_ply_sequence(source, out_dir, fps,
+                                                     progress=lambda i, n: wm.progress_update(int(100 * i / n)))
         except Exception as exc:  # noqa: BLE001 - RunError / PlyFormatError and friends, shown verbatim
             self.report({"ERROR"}, f"Could not export the PLY sequence: {exc}")
             return {"CANCELLED"}

@@ -40,7 +40,7 @@ if str(REPO) not in sys.path:
 
 import bpy  # noqa: E402
 
-from bt4d_addon import scene_build  # noqa: E402
+from bt4d_addon import blender_cameras  # noqa: E402
 from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
 
 PRESETS = {
@@ -264,7 +264,7 @@ def rig(rgb_size, spike_size, scene) -> dict:
                           role="eval" if name.startswith("eval") else "train")
     cams["spike0"] = dict(intr=rgb_intr.scaled(*spike_size), c2w=cams["rgb0"]["c2w"].copy(), role="train")
     for name, cam in cams.items():
-        cam["object"] = scene_build.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
+        cam["object"] = blender_cameras.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
     return cams
 
 
@@ -272,7 +272,7 @@ def rig(rgb_size, spike_size, scene) -> dict:
 
 def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
     scene.camera = cam["object"]
-    scene_build.configure_render(scene, cam["intr"])
+    blender_cameras.configure_render(scene, cam["intr"])
     st = scene.render.image_settings
     if fmt == "PNG":
         st.file_format = "PNG"

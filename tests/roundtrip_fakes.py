@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from engine.scene.model import Scene4D
+
 
 def quat_to_mat(q):
     w, x, y, z = q / np.linalg.norm(q)
@@ -52,7 +54,10 @@ def splat(g, view, background=None):
 
 
 class FakeScene4D:
-    """N Gaussians in a small cluster around ``center``, moving with constant velocity."""
+    """N Gaussians in a small cluster around ``center``, moving with constant velocity.
+    ``sample`` is the real ``Scene4D.sample`` (it only needs ``gaussians_at``)."""
+
+    sample = Scene4D.sample
 
     def __init__(self, n=40, seed=0, time_range=(0.0, 0.2), center=(0.0, 0.0, 0.0), speed=2.0):
         rng = np.random.default_rng(seed)
@@ -71,8 +76,8 @@ class FakeScene4D:
         return dict(means=(self.m0 + t * self.vel).astype(np.float32), quats=self.quats.copy(),
                     scales=self.scales.copy(), opacities=self.opac.copy(), colors=self.colors.copy())
 
-    def render(self, views, background=None):
-        return [splat(self.gaussians_at(v.time), v, background) for v in views]
+    def render(self, views, background=None, time=None):
+        return [splat(self.gaussians_at(v.time if time is None else time), v, background) for v in views]
 
 
 def make_fake_capture(root, *, width=64, height=48, rgb_fps=30.0, eval_fps=150.0, duration=0.2, n=40, seed=0):

@@ -92,6 +92,7 @@ ENABLE_SCRIPT = textwrap.dedent("""
     mod = addon_utils.enable("bl_ext.bt4d_test.bullettime4d", default_set=True, handle_error=errors.append)
     out["module"] = getattr(mod, "__name__", None)
     out["errors"] = [repr(e) for e in errors]
+    out["torch_at_enable"] = "torch" in sys.modules  # Blender ships without torch
     out["op"] = hasattr(bpy.ops.bt4d, "import_capture") and "import_capture" in dir(bpy.ops.bt4d)
     out["panels"] = [n for n in ("BT4D_PT_capture", "BT4D_PT_reconstruction", "BT4D_PT_result",
                                  "BT4D_PT_bullet_time") if getattr(bpy.types, n, None) is not None]
@@ -118,6 +119,7 @@ def test_enable_and_disable_through_extension_repository(demo_capture, copy):
     res, log = blender_util.run_python(ENABLE_SCRIPT.replace("COPY", str(copy)))
     assert res is not None, log
     assert res["module"] == "bl_ext.bt4d_test.bullettime4d" and not res["errors"], log
+    assert res["torch_at_enable"] is False, log  # the engine's torch modules load on first use
     assert res["op"], log
     assert res["panels"] == ["BT4D_PT_capture", "BT4D_PT_reconstruction", "BT4D_PT_result", "BT4D_PT_bullet_time"]
     assert res["prefs"] == "BT4D_AddonPreferences"

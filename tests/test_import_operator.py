@@ -202,13 +202,13 @@ def test_projection_matches_pinhole_model(scene, tiny):
     assert scene.camera.name == "left"
     # the import set the scene up for the main camera; fx != fy goes into the pixel aspect
     assert scene.render.pixel_aspect_y / scene.render.pixel_aspect_x == pytest.approx(LEFT.fx / LEFT.fy)
-    scene_build = addon_module("bt4d_addon.scene_build")
+    cameras = addon_module("bt4d_addon.blender_cameras")
     checked = 0
     for name, info in cap.cameras.items():
         k = info.intrinsics
         obj = bpy.data.objects[name]
         if name != "left":  # other cameras: set the scene up for them as a renderer would
-            scene_build.configure_render(scene, k)
+            cameras.configure_render(scene, k)
         c2w = np.array(obj.matrix_world)
         pts = points_in_view(k, c2w)
         expected, depth = project_points(View(k, c2w), pts)
@@ -229,18 +229,19 @@ def test_projection_matches_pinhole_model(scene, tiny):
 ])
 def test_camera_params_round_trip(addon, scene, k):
     """camera_params -> Blender camera -> intrinsics_from_camera gives back the pinhole model."""
-    scene_build = addon_module("bt4d_addon.scene_build")
+    cameras = addon_module("bt4d_addon.blender_cameras")
     data = bpy.data.cameras.new("probe")
-    p = scene_build.apply_intrinsics(data, k)
-    fx, fy, cx, cy = scene_build.intrinsics_from_camera(data, k.width, k.height,
-                                                        p["pixel_aspect_x"], p["pixel_aspect_y"])
+    p = cameras.apply_intrinsics(data, k)
+    back = cameras.intrinsics_from_camera(data, k.width, k.height, p["pixel_aspect_x"], p["pixel_aspect_y"])
+    fx, fy, cx, cy = back.fx, back.fy, back.cx, back.cy
+    assert (back.width, back.height) == (k.width, k.height)
     assert (fx, fy, cx, cy) == pytest.approx((k.fx, k.fy, k.cx, k.cy), rel=1e-6, abs=1e-6)
     # and the projection through a real object agrees
-    scene_build.configure_render(scene, k)
+    cameras.configure_render(scene, k)
     c2w = look_at_c2w((1.0, -3.0, 2.0), (0.0, 0.5, 0.3))
     obj = bpy.data.objects.new("probe", data)
     scene.collection.objects.link(obj)
-    obj.matrix_world = scene_build.matrix_from_rows(c2w)
+    obj.matrix_world = cameras.matrix_from_rows(c2w)
     bpy.context.view_layer.update()
     pts = points_in_view(k, c2w, n=20, seed=3)
     expected, _ = project_points(View(k, c2w), pts)
@@ -354,8 +355,8 @@ def test_missing_folder_is_reported(scene, tmp_path):
 
 def test_failure_while_building_rolls_back(scene, tiny, monkeypatch):
     """If building fails half-way (after some cameras exist), nothing is left behind."""
-    scene_build = addon_module("bt4d_addon.scene_build")
-    real = scene_build.create_camera_object
+    cameras = addon_module("bt4d_addon.blender_cameras")
+    real = cameras.create_camera_object
     calls = []
 
     def flaky(name, *a, **kw):
@@ -364,7 +365,7 @@ def test_failure_while_building_rolls_back(scene, tiny, monkeypatch):
             raise RuntimeError("simulated failure")
         return real(name, *a, **kw)
 
-    monkeypatch.setattr(scene_build, "create_camera_object", flaky)
+    monkeypatch.setattr(cameras, "create_camera_object", flaky)
     before = blender_util.datablock_counts()
     with pytest.raises(RuntimeError, match="simulated failure"):
         import_capture(tiny)

@@ -35,7 +35,7 @@ def scene():
 
 
 def _setup(scene, model, K=5):
-    samples = gn.sample_scene(model, K)
+    samples = model.sample(K)
     obj = gn.build_result_object("Result", samples)
     gn.key_capture_time(obj, [(1, model.time_range[0]), (11, model.time_range[1])])
     gm.configure_scene_for_splats(scene)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import RunError
 from ..scene.gaussians import SH_C0
-from ..scene.model import load_run, view_tensors
+from ..scene.model import Scene4D, load_run, view_tensors
 from .compact import MAGIC, CompactFormatError, read_compact
 from .splats import render_splats, splats_at
 
@@ -59,6 +59,9 @@ class CachedScene:
         return {"means": s["means"], "quats": q.astype(np.float32), "scales": np.exp(s["log_scales"]),
                 "opacities": (1.0 / (1.0 + np.exp(-s["opacity_logits"]))).astype(np.float32),
                 "colors": np.clip(0.5 + SH_C0 * s["sh"][:, 0], 0.0, 1.0).astype(np.float32), "sh": s["sh"]}
+
+    # K evenly spaced samples for Blender's Load Result: the same code as a run's
+    sample = Scene4D.sample
 
     def render(self, views, background=None, time: float | None = None) -> list[dict]:
         """Render each View at its own time (or ``time``): rgb [H,W,3], alpha, depth."""

@@ -135,28 +135,47 @@ def output_names(views: list[View], names: list[str] | None = None) -> list[str]
 
 
 def write_renders(scene, views: list[View], out_dir, fmt: str = "png", *, time: float | None = None,
-                  names: list[str] | None = None) -> list[Path]:
+                  names: list[str] | None = None, paths: list | None = None,
+                  png_background=None) -> list[Path]:
     """Render ``views`` (each at its own time, or at ``time``) into ``out_dir``, one file each
-    (EXR: linear premultiplied RGBA + Z; PNG: sRGB straight RGBA; see the module doc)."""
+    (EXR: linear premultiplied RGBA + Z; PNG: sRGB straight RGBA; see the module doc).
+
+    ``paths``: one output file per view (then ``out_dir`` and ``names`` are not used), e.g.
+    Blender's frame-numbered names. ``png_background``: PNG only; None writes RGBA with
+    straight alpha, an RGB colour writes RGB composited over that colour. Colliding output
+    names are refused before anything is rendered."""
     if fmt not in ("png", "exr"):
         raise ValueError(f"format must be png or exr, got {fmt!r}")
-    stems = output_names(views, names)  # before rendering anything: a collision writes nothing
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for v, name in zip(views, stems):
-        r = scene.render([v], background=(0.0, 0.0, 0.0), time=time)[0]
+    if paths is not None:
+        targets = [Path(p) for p in paths]
+        if len(targets) != len(views):
+            raise ValueError(f"{len(targets)} output paths for {len(views)} views")
+        if len(set(targets)) != len(targets):
+            raise ValueError("two views would write the same output file")
+    else:
+        stems = output_names(views, names)  # before rendering anything: a collision writes nothing
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        targets = [out_dir / f"{name}.{fmt}" for name in stems]
+    written = []
+    for v, target in zip(views, targets):
+        bg = png_background if (fmt == "png" and png_background is not None) else (0.0, 0.0, 0.0)
+        r = scene.render([v], background=bg, time=time)[0]
         rgb, alpha, depth = r["rgb"], r["alpha"], r["depth"]
-        straight = _unpremultiply(rgb, alpha)
         if fmt == "png":
-            p = write_png(out_dir / f"{name}.png", np.concatenate([straight, alpha[..., None]], -1).astype(np.float32))
+            if png_background is not None:
+                p = write_png(target, np.clip(rgb, 0.0, 1.0).astype(np.float32))
+            else:
+                straight = _unpremultiply(rgb, alpha)
+                p = write_png(target, np.concatenate([straight, alpha[..., None]], -1).astype(np.float32))
         else:
+            straight = _unpremultiply(rgb, alpha)
             lin = srgb_to_linear(straight.astype(np.float32)) * alpha[..., None]
             z = np.where(alpha > 1e-4, depth, Z_BACKGROUND).astype(np.float32)
-            p = write_exr(out_dir / f"{name}.exr", {"R": lin[..., 0], "G": lin[..., 1], "B": lin[..., 2],
-                                                    "A": alpha.astype(np.float32), "Z": z})
-        paths.append(p)
-    return paths
+            p = write_exr(target, {"R": lin[..., 0], "G": lin[..., 1], "B": lin[..., 2],
+                                   "A": alpha.astype(np.float32), "Z": z})
+        written.append(p)
+    return written
 
 
 def orbit_views(center, radius: float, intrinsics: Intrinsics, n: int = 36, *, height: float = 0.0,

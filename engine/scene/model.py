@@ -4,11 +4,13 @@
   deformed Gaussians at capture time ``t`` (seconds, continuous), ``render(...)`` rasterizes
   them with :func:`engine.raster.rasterization`.
 * :func:`load_run` opens a run directory and returns a :class:`Scene4D` (numpy in, numpy out)
-  -- what the Blender side, the render CLI and the exporter call.
-  The compact per-time cache is written by :mod:`engine.export.npz`.
+  -- what the Blender side, the render CLI and the exporter call. ``Scene4D.sample`` gives
+  the Gaussians at K capture times, the arrays the Blender side stores as mesh attributes.
+  The per-time npz cache is written by :mod:`engine.export.npz`.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +163,18 @@ class Model4D(nn.Module):
         return m
 
 
+SAMPLE_KEYS = ("means", "quats", "scales", "opacities", "colors")  # Scene4D.sample arrays
+
+
+def auto_num_samples(duration: float, num_gaussians: int, per_second: float = 150.0,
+                     max_points: int = 4_000_000, max_samples: int = 300) -> int:
+    """A default number of time samples K: ``per_second`` per capture second, at least 2, and
+    at most ``max_points`` stored points (N*K) in all."""
+    k = int(math.ceil(max(duration, 0.0) * per_second)) + 1
+    k = min(k, max_samples, max(2, max_points // max(1, num_gaussians)))
+    return max(2, k)
+
+
 def _cpu_or_none(t):
     return None if t is None else t.cpu()
 
@@ -200,6 +214,22 @@ class Scene4D:
             return {"means": _np(a["means"]), "quats": _np(q), "scales": _np(a["scales"]),
                     "opacities": _np(a["opacities"]), "colors": _np(a["colors"].clamp(0, 1)),
                     "sh": _np(sh)}
+
+    def sample(self, num_samples: int = 0, time_range=None) -> dict:
+        """The Gaussians at K evenly spaced capture times ``t_k = t0 + k (t1 - t0) / (K - 1)``
+        (what the Blender side stores as one mesh of N*K points).
+
+        ``num_samples`` K (< 2: :func:`auto_num_samples`); ``time_range`` (t0, t1), default
+        :attr:`time_range`. Returns float32 arrays ``means [K,N,3]``, ``quats [K,N,4]``,
+        ``scales [K,N,3]``, ``opacities [K,N]``, ``colors [K,N,3]`` (sRGB-encoded, as
+        :meth:`gaussians_at`) and ``times [K]`` (float64)."""
+        t0, t1 = time_range if time_range is not None else self.time_range
+        k = int(num_samples) if num_samples and num_samples >= 2 else auto_num_samples(t1 - t0, self.num_gaussians)
+        times = np.linspace(float(t0), float(t1), k)
+        per_time = [self.gaussians_at(float(t)) for t in times]
+        out = {key: np.stack([np.asarray(g[key], dtype=np.float32) for g in per_time]) for key in SAMPLE_KEYS}
+        out["times"] = times
+        return out
 
     def render(self, views: list[View], background=None, time: float | None = None) -> list[dict]:
         """Render each View at its own time (or ``time``): rgb [H,W,3] sRGB-encoded, alpha, depth."""
