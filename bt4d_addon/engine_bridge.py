@@ -33,8 +33,8 @@ else:  # bt4d_addon imported from the checkout's root
     from engine.io.capture import load_capture
     from engine.io.images import read_image_size
 
-__all__ = ["CaptureError", "Intrinsics", "View", "evaluate", "load_capture", "load_run", "look_at_c2w",
-           "read_image_size", "srgb_to_linear", "train", "write_renders"]
+__all__ = ["CaptureError", "Intrinsics", "View", "evaluate", "export_ply_sequence", "load_capture", "load_result",
+           "load_run", "look_at_c2w", "read_image_size", "srgb_to_linear", "train", "write_renders"]
 
 
 @functools.cache
@@ -42,15 +42,18 @@ def _torch_side() -> SimpleNamespace:
     """The torch-backed engine functions, imported on first use (see the module docstring)."""
     if _IN_EXTENSION:
         from ..engine.evaluate import evaluate
+        from ..engine.export import cached, ply
         from ..engine.export.render_views import write_renders
         from ..engine.scene.model import load_run
         from ..engine.train import train
     else:
         from engine.evaluate import evaluate
+        from engine.export import cached, ply
         from engine.export.render_views import write_renders
         from engine.scene.model import load_run
         from engine.train import train
-    return SimpleNamespace(evaluate=evaluate, load_run=load_run, train=train, write_renders=write_renders)
+    return SimpleNamespace(evaluate=evaluate, load_run=load_run, train=train, write_renders=write_renders,
+                           cached=cached, ply=ply)
 
 
 def train(capture_path, run_dir, **kwargs) -> dict:
@@ -72,3 +75,23 @@ def write_renders(scene4d, views, out_dir, fmt: str = "png", **kwargs) -> list:
     """``engine.export.render_views.write_renders``: the engine's one render-to-file (its EXR and
     PNG conventions are documented there)."""
     return _torch_side().write_renders(scene4d, views, out_dir, fmt, **kwargs)
+
+
+def load_result(path, device="cpu"):
+    """``engine.export.cached.load_result``: a run folder (``Scene4D``) or a compact cache
+    (``.bt4c``, ``CachedScene``); both ``sample`` and ``render``."""
+    return _torch_side().cached.load_result(path, device=device)
+
+
+def export_ply_sequence(source, out_dir, fps: float, progress=None) -> dict:
+    """Sample a run folder or compact cache at ``fps`` over its time range and write a 3DGS PLY
+    sequence (``engine.export.ply.write_sequence``). Returns index path, frame and Gaussian counts."""
+    side = _torch_side()
+    scene4d = side.cached.load_result(source)
+    t0, t1 = scene4d.time_range
+    n = int((t1 - t0) * fps + 1e-6) + 1
+    times = [t0 + i / fps for i in range(n)]
+    meta = side.cached.run_meta(scene4d)
+    index = side.ply.write_sequence(out_dir, times, side.cached.sample_splats(scene4d), fps=fps,
+                                    source=meta["source"], background=meta["background"], progress=progress)
+    return {"index": str(index), "frames": n, "gaussians": scene4d.num_gaussians}

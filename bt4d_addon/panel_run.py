@@ -60,6 +60,7 @@ def draw_result(layout, context) -> None:
         g = box.grid_flow(columns=2, align=True)
         g.label(text=f"PSNR {r.metric_psnr:.2f} dB")
         g.label(text=f"SSIM {r.metric_ssim:.3f}")
+        g.label(text=f"LPIPS {r.metric_lpips:.3f}" if r.metric_lpips >= 0 else "LPIPS n/a")
         g.label(text=f"Between frames {r.metric_psnr_interframe:.2f} dB")
         g.label(text=f"Dynamic {r.metric_psnr_dynamic:.2f} dB")
         box.label(text=f"{r.metric_frames} frames, trained {_fmt_time(r.train_seconds)}")
@@ -69,6 +70,11 @@ def draw_result(layout, context) -> None:
     op = col.operator("bt4d.load_result", text="Load Result", icon="IMPORT")
     if r.run_dir:
         op.directory = r.run_dir
+    row = col.row()
+    row.enabled = bool(r.run_dir)
+    op = row.operator("bt4d.export_ply", text="Export PLY Sequence", icon="EXPORT")
+    if r.run_dir:
+        op.source = r.run_dir
     results = gn.find_result_objects(scene)
     if not results:
         col.label(text="No reconstruction in the scene", icon="INFO")

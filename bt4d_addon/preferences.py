@@ -33,6 +33,8 @@ REQUIREMENTS = (
     "trimesh==5.2.0",
     "pytorch-msssim==1.0.0",
     "pillow==13.0.0",
+    "plyfile==1.1.2",
+    "zstandard==0.25.0",
 )
 
 _added_paths: list[str] = []  # the sys.path entries this add-on appended

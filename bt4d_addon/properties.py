@@ -105,6 +105,8 @@ class BT4D_RunState(PropertyGroup):
     has_metrics: BoolProperty(default=False)
     metric_psnr: FloatProperty(name="PSNR", precision=2)
     metric_ssim: FloatProperty(name="SSIM", precision=4)
+    metric_lpips: FloatProperty(name="LPIPS", precision=4, default=-1.0,
+                                description="LPIPS-Alex on the held-out frames (lower is better; -1: not measured)")
     metric_psnr_interframe: FloatProperty(name="PSNR between RGB frames", precision=2)
     metric_psnr_dynamic: FloatProperty(name="PSNR dynamic regions", precision=2)
     metric_frames: IntProperty(name="Eval frames")

@@ -207,8 +207,9 @@ def reconstruct_job(*, progress, cancel, capture_path: str, run_dir: str, preset
 
 
 def sample_run(run_dir: str, num_samples: int = 0, device="cpu") -> dict:
-    """Open a run and sample it at K times (K = 0: automatic). No bpy."""
-    samples = engine_bridge.load_run(run_dir, device=device).sample(num_samples)
+    """Open a run folder or a compact cache (.bt4c) and sample it at K times (K = 0:
+    automatic). No bpy."""
+    samples = engine_bridge.load_result(run_dir, device=device).sample(num_samples)
     samples["run_dir"] = str(run_dir)
     return samples
 

@@ -1,6 +1,9 @@
-"""``bpy.ops.bt4d.load_result(directory=RUN)``: bring a reconstruction back into Blender.
+"""``bpy.ops.bt4d.load_result(directory=RUN)`` or ``(filepath=CACHE.bt4c)``: bring a
+reconstruction back into Blender, from its run folder or from a compact 4D cache written by
+``python -m engine export RUN --format compact`` (``engine/export/cached.py`` opens both).
 
-The run's model (``engine.scene.model.load_run``) is sampled at K capture times (``Scene4D.sample``) and stored as one
+The run's model (``engine.scene.model.load_run``) or the cache is sampled at K capture times
+(``Scene4D.sample``) and stored as one
 mesh of N*K vertices packed in the .blend; a geometry-nodes modifier turns it into
 ellipsoid instances animated by the keyframable "Capture Time" input
 (``bt4d_addon/gaussian_nodes.py``, ``bt4d_addon/gaussian_material.py``). Nothing runs in
@@ -78,6 +81,9 @@ class BT4D_OT_load_result(Operator):
 
     directory: StringProperty(name="Run Folder", subtype="DIR_PATH",
                               description="Run folder written by the reconstruction (holds checkpoint.pt)")
+    filepath: StringProperty(name="Compact Cache", subtype="FILE_PATH",
+                             description="A compact 4D cache (.bt4c) to load instead of a run folder")
+    filter_glob: StringProperty(default="*.bt4c", options={"HIDDEN"})
     num_samples: IntProperty(name="Time Samples", default=-1, min=-1, soft_max=400,
                              description="Stored capture-time samples (0: automatic; -1: the scene setting)")
     replace: BoolProperty(name="Replace", default=True,
@@ -95,9 +101,13 @@ class BT4D_OT_load_result(Operator):
 
     def execute(self, context):
         scene = context.scene
-        run_dir = bpy.path.abspath(self.directory).rstrip("/\\") if self.directory else ""
+        cache = bpy.path.abspath(self.filepath) if self.filepath else ""
+        if cache and Path(cache).is_file():  # a chosen .bt4c file wins over the folder it lies in
+            run_dir = cache
+        else:
+            run_dir = bpy.path.abspath(self.directory).rstrip("/\\") if self.directory else ""
         if not run_dir:
-            self.report({"ERROR"}, "No run folder given")
+            self.report({"ERROR"}, "No run folder or compact cache given")
             return {"CANCELLED"}
         k = self.num_samples
         if k < 0:

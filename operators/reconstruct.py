@@ -121,6 +121,7 @@ def apply_metrics(scene, metrics: dict | None, summary: dict) -> None:
     r.has_metrics = True
     r.metric_psnr = _num(metrics.get("psnr"))
     r.metric_ssim = _num(metrics.get("ssim"))
+    r.metric_lpips = _num(metrics.get("lpips"), -1.0)  # -1: a metrics.json from before LPIPS
     r.metric_psnr_interframe = _num(metrics.get("psnr_interframe"))
     r.metric_psnr_dynamic = _num(metrics.get("psnr_dynamic"))
     r.metric_frames = int(_num(metrics.get("n_frames")))

@@ -19,8 +19,8 @@ def _fakes(calls):
 
     def eval_fn(run_dir, capture, device="cpu"):
         bonus = 3.0 if "full" in str(run_dir) else 0.0
-        m = {"psnr": 20.0 + bonus, "ssim": 0.8, "psnr_interframe": 19.0 + bonus, "ssim_interframe": 0.79,
-             "psnr_dynamic": 15.0 + bonus, "num_gaussians": 1000}
+        m = {"psnr": 20.0 + bonus, "ssim": 0.8, "lpips": 0.25 - bonus / 100, "psnr_interframe": 19.0 + bonus,
+             "ssim_interframe": 0.79, "psnr_dynamic": 15.0 + bonus, "num_gaussians": 1000}
         (run_dir / "metrics.json").write_text(json.dumps(m))
         (run_dir / "eval_frames.csv").write_text("index,time,camera,interframe,psnr,ssim,psnr_dynamic\n"
                                                  "0,0.0,eval0,0,21.0,0.8,\n1,0.01,eval0,1,19.0,0.8,\n"
@@ -52,10 +52,11 @@ def test_run_ablation_equal_budget_table_csv_png(tmp_path):
     assert all(c["resume"] is False for c in calls)
     table = ablate.format_table(rows)
     assert "full" in table and "+3.00" in table and "PSNR inter" in table
+    assert "LPIPS" in table and "0.220" in table and "0.250" in table
     ablate.write_csv(rows, tmp_path / "a.csv")
     got = list(csv.DictReader(open(tmp_path / "a.csv")))
     assert [r["variant"] for r in got] == ["rgb-only", "+spike", "full", "rgb+interp"]
-    assert float(got[2]["psnr_interframe"]) == 22.0
+    assert float(got[2]["psnr_interframe"]) == 22.0 and float(got[2]["lpips"]) == pytest.approx(0.22)
     assert rows[0]["psnr_keyframe"] == 22.0  # mean over the RGB instants of eval_frames.csv
     png = ablate.plot(rows, tmp_path / "a.png", title="t")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

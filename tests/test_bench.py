@@ -225,3 +225,16 @@ def test_micro_freeze_step_on_a_run_with_a_frozen_mask(tmp_path, capture):
     r = micro.micro_freeze_step(tmp_path / "run", capture, repeats=2)
     assert r["frozen_fraction"] == 0.75 and r["gaussians"] == 200
     assert r["step_ms_frozen"] > 0 and r["step_ms_unfrozen"] > 0 and r["speedup"] > 0
+
+
+def test_markdown_table_has_lpips():
+    final = {"psnr": 20.0, "ssim": 0.8, "lpips": 0.1234, "psnr_interframe": 19.0, "psnr_dynamic": 15.0,
+             "num_gaussians": 10}
+    r = bench.RunResult("fast", "full", "run", {"step": 5, "total_steps": 5, "status": "finished"}, [], final,
+                        100.0, "test", 1.0)
+    md = bench.markdown([r], {}, {"seconds": 1, "eval_stride": 1, "eval_every_s": 1})
+    header = next(line for line in md.splitlines() if line.startswith("| preset"))
+    row = next(line for line in md.splitlines() if line.startswith("| fast | full"))
+    cells = [c.strip() for c in header.strip("|").split("|")]
+    values = [c.strip() for c in row.strip("|").split("|")]
+    assert len(values) == len(cells) and values[cells.index("LPIPS")] == "0.1234"

@@ -38,8 +38,10 @@ def test_eval_prints_metrics_json(run_dir, capsys):
               "num_gaussians"):
         assert k in out
     assert out["n_frames"] == 61 and out["n_interframe"] > 40 and 5 < out["psnr"] < 60
+    assert 0.0 < out["lpips"] < 1.0
     rows = (run_dir / "eval_frames.csv").read_text().splitlines()
     assert rows[0].split(",")[:4] == ["index", "time", "camera", "interframe"] and len(rows) == 62
+    assert rows[0].split(",")[-1] == "lpips" and all(0 < float(r.split(",")[-1]) < 1 for r in rows[1:])
     assert json.loads((run_dir / "metrics.json").read_text())["psnr"] == out["psnr"]
 
 

@@ -17,6 +17,7 @@ COMMANDS = {
     "bench-raster": "bench_raster",
     "bench-decode": "bench_decode",
     "import-graph": "import_graph",
+    "compact-steps": "compact_steps",
 }
 
 

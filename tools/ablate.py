@@ -50,7 +50,7 @@ VARIANTS: dict[str, tuple[bool, dict, str]] = {
     "rgb+spike2img": (True, {"baseline": "spike2img"}, "RGB-only + Spike2img + colour"),
 }
 
-COLUMNS = ("psnr", "ssim", "psnr_interframe", "ssim_interframe", "psnr_dynamic", "psnr_keyframe")
+COLUMNS = ("psnr", "ssim", "lpips", "psnr_interframe", "ssim_interframe", "psnr_dynamic", "psnr_keyframe")
 
 
 def keyframe_psnr(run_dir) -> float | None:
@@ -122,8 +122,8 @@ def run_ablation(capture, out_dir, seconds: float, variants: list[str], *, prese
 
 
 def format_table(rows: list[dict]) -> str:
-    head = ["variant", "PSNR", "SSIM", "PSNR inter", "SSIM inter", "PSNR dyn", "PSNR key", "steps", "train s"]
-    lines = [[r["variant"], fmt(r["psnr"]), fmt(r["ssim"], 3), fmt(r["psnr_interframe"]),
+    head = ["variant", "PSNR", "SSIM", "LPIPS", "PSNR inter", "SSIM inter", "PSNR dyn", "PSNR key", "steps", "train s"]
+    lines = [[r["variant"], fmt(r["psnr"]), fmt(r["ssim"], 3), fmt(r.get("lpips"), 3), fmt(r["psnr_interframe"]),
               fmt(r["ssim_interframe"], 3), fmt(r["psnr_dynamic"]), fmt(r.get("psnr_keyframe")), fmt(r.get("steps")),
               fmt(r.get("train_seconds"), 1)] for r in rows]
     base = next((r for r in rows if r["variant"] == "rgb-only"), None)

@@ -341,9 +341,9 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
                 else f"{(meta.get('overrides') or {}).get('iterations', 'preset')} steps per run")
              + f"; curve: eval frames every {meta.get('eval_stride')}, "
              f"checkpoint every {meta.get('eval_every_s')} s. Shared CPU: timings are noisy.", "",
-             "| preset | variant | steps | train s | CPU s | PSNR | SSIM | PSNR inter | PSNR dyn | Gaussians | "
+             "| preset | variant | steps | train s | CPU s | PSNR | SSIM | LPIPS | PSNR inter | PSNR dyn | Gaussians | "
              "t to final-0.5 dB (s) | peak RSS MB | flicker x255 | notes |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         fin = r.final
         fl = fin.get("flicker") or {}
@@ -363,7 +363,7 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
         lines.append(
             f"| {r.preset} | {r.variant} | {r.summary.get('step')}/{r.summary.get('total_steps')} | "
             f"{fmt(r.summary.get('train_seconds'), 1)} | {fmt(r.extra.get('cpu_s'), 1)} | "
-            f"{fmt(fin.get('psnr'))} | {fmt(fin.get('ssim'), 4)} | "
+            f"{fmt(fin.get('psnr'))} | {fmt(fin.get('ssim'), 4)} | {fmt(fin.get('lpips'), 4)} | "
             f"{fmt(fin.get('psnr_interframe'))} | {fmt(fin.get('psnr_dynamic'))} | {fin.get('num_gaussians', '-')} | "
             f"{fmt(time_to_within(r.curve, fin.get('psnr') or float('nan')), 1)} | {fmt(r.peak_rss_mb, 0)} | "
             f"{fmt(fl.get('flicker_255'), 3)} | {'; '.join(notes)} |")

@@ -17,15 +17,17 @@ import numpy as np
 from ..errors import CaptureError, RunError
 from ..evaluate.heldout import evaluate
 from ..evaluate.novel_view import evaluate_novel_views, format_table
+from ..export.cached import CachedScene, load_result
 from ..io.capture import load_capture
 from ..io.fileio import atomic_write
 from ..scene.model import load_run
 
-HELP = "render every role:eval frame of the capture and print PSNR / SSIM as JSON (--per-camera: the novel-view table)"
+HELP = ("render every role:eval frame of the capture and print PSNR / SSIM / LPIPS as JSON "
+        "(--per-camera: the novel-view table)")
 
 
 def add_arguments(p) -> None:
-    p.add_argument("run", help="run directory")
+    p.add_argument("run", help="run directory, or a compact cache (.bt4c; scored without writing files)")
     p.add_argument("capture", nargs="?", default=None, help="capture folder (default: the one recorded in run.json)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--per-camera", action="store_true",
@@ -77,7 +79,10 @@ def main(args) -> int:
     try:
         if args.per_camera:
             return per_camera(args)
-        result = evaluate(args.run, args.capture, device=args.device)
+        scene = load_result(args.run, device=args.device)
+        # a cache is a single file: its scores are printed, nothing is written beside it
+        result = evaluate(args.run, args.capture, device=args.device, scene=scene,
+                          write=not isinstance(scene, CachedScene))
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
