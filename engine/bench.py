@@ -24,9 +24,9 @@ Design (documented here because the numbers depend on it):
 * Peak memory is the process's peak resident set size during the run (Linux ``VmHWM``,
   reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
   process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
-* Early stopping runs inside the trainer: its proxy is the PSNR on a few eval frames
-  (``early_stop_proxy_frames``, reported separately: ``psnr_excl_proxy`` scores the other
-  frames), evaluated every ``early_stop_every_fraction`` of the steps (its cost *is*
+* Early stopping runs inside the trainer: its proxy is the PSNR on a few train frames held
+  back from training (``early_stop_proxy_frames``; never eval frames, so every eval figure
+  here is on views the run neither trained on nor stopped by), evaluated every ``early_stop_every_fraction`` of the steps (its cost *is*
   counted in the wall time); training stops after ``early_stop_patience`` proxy
   evaluations without a gain of ``early_stop_min_delta`` dB, once the deformation stage has
   run for ``early_stop_min_deform_fraction`` of its steps.
@@ -283,13 +283,6 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
 
     final = dict(evaluate_fn(run_dir, capture))
     skips = summary.get("skips") or {}
-    es = skips.get("early_stop") or {}
-    proxy = set(es.get("frames") or []) if es.get("proxy") == "eval" else set()
-    if proxy:
-        rest = [f for f in all_eval if str(f.path) not in proxy]
-        from .model import load_run
-
-        final["psnr_excl_proxy"] = score_model(load_run(run_dir).model, capture, rest, cache)["psnr"]
     if flicker:
         try:
             from .freezing import run_flicker
@@ -464,8 +457,6 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
         if "early_stop" in r.extra and r.extra["early_stop"]["stopped_at"]:
             s = r.extra["early_stop"]["stopped_at"]
             notes.append(f"stopped at {s['step']}/{s['total_steps']}")
-        if "psnr_excl_proxy" in fin:
-            notes.append(f"PSNR excl. proxy frames {fin['psnr_excl_proxy']:.2f}")
         if "cull" in r.extra:
             notes.append(f"culled {r.extra['cull']['pruned']}")
         if "freeze" in r.extra:

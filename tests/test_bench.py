@@ -159,7 +159,7 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
         ov = kw["overrides"]
         s["skips"] = {}
         if ov.get("early_stop"):
-            s["skips"]["early_stop"] = {"proxy": "eval", "frames": [str(capture.eval_frames[0].path)],
+            s["skips"]["early_stop"] = {"proxy": "held_back_train", "frames": ["train:rgb0@0.033333"],
                                         "stopped_at": {"step": 6, "total_steps": 9}, "history": []}
         if ov.get("cull_frustum"):
             s["skips"]["cull"] = {"pruned": 7, "events": []}
@@ -176,8 +176,7 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
     assert seen["fast-rgb_only"][1] is True and all(ov["max_gaussians"] == 500 for ov, _ in seen.values())
     by = {r.variant: r for r in res["results"]}
     assert by["cull"].extra["cull"]["pruned"] == 7 and by["freeze"].extra["freeze"]["woken"] == 2
-    # the proxy frame is scored separately
-    assert np.isfinite(by["early_stop"].final["psnr_excl_proxy"]) and "psnr_excl_proxy" not in by["full"].final
+    assert by["early_stop"].extra["early_stop"]["proxy"] == "held_back_train"
     md = res["markdown"]
     assert "stopped at 6/9" in md and "culled 7" in md and "frozen 50% at end, woken 2" in md
 
@@ -195,7 +194,7 @@ def test_skip_variants_with_the_real_trainer(tmp_path, capture):
             assert r.extra["freeze"]["checks"] > 0 and r.extra["freeze"]["fraction_frozen"] > 0
         elif variant == "early_stop":  # a gain of 100 dB never comes: stops at the first deformation evaluation
             assert r.summary["stopped_early"] and r.summary["step"] < 10
-            assert "psnr_excl_proxy" in r.final
+            assert r.extra["early_stop"]["proxy"] == "held_back_train"  # never the eval frames
         else:
             assert "pruned" in r.extra["cull"]
 

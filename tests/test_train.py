@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from engine.capture import load_capture
 from engine.checkpoint import load_checkpoint, read_run_json
 from engine.evaluate import evaluate
 from engine.presets import PRESETS, TrainConfig, get_preset
@@ -362,40 +363,72 @@ def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_
     assert moved[mask.numpy()].max() == 0.0 and moved.max() > 0
 
 
-def test_early_stop_stops_on_a_plateau_with_eval_or_train_proxy(tiny_capture, tmp_path):
+def test_early_stop_stops_on_a_plateau_with_held_back_train_proxy(tiny_capture, tmp_path):
     ov = {"iterations": 40, "static_fraction": 0.25, "init": "ply", "densify_from": 2.0, "early_stop": True,
           "early_stop_proxy_frames": 2, **FROZEN_LRS}
     run = tmp_path / "es"
     s = train(tiny_capture, run, overrides=ov, rgb_only=True)
     st = s["stopped_early"]
-    assert s["status"] == "finished" and st is not None and st["proxy"] == "eval"
+    assert s["status"] == "finished" and st is not None and st["proxy"] == "held_back_train"
     assert s["step"] == st["step"] < s["total_steps"] == 40
     # evaluations every 2 steps (1, 3, 5, ...); the deformation stage (from step 10) must run
     # 25% of its 30 steps before 3 evaluations without a gain (19, 21, 23) stop it
     assert st["step"] == 23, st
     info = read_run_json(run)
     assert info["status"] == "finished" and info["stopped_early"] == st and info["step"] == st["step"]
-    assert info["early_stop_proxy"]["source"] == "eval" and len(info["early_stop_proxy"]["frames"]) == 2
+    proxy = info["early_stop_proxy"]
+    # the proxy is train frames (one camera each at the 2nd and 3rd instant), never eval frames
+    assert proxy["source"] == "held_back_train" and len(proxy["frames"]) == 2
+    assert proxy["frames"] == ["train:rgb0@0.033333", "train:rgb1@0.066667"], proxy
+    cap = load_capture(tiny_capture)
+    assert not {str(f.path) for f in cap.eval_frames} & set(proxy["frames"])
     # resuming a run that stopped early does not train on
     s2 = train(tiny_capture, run, overrides=ov, rgb_only=True)
     assert s2["resumed_from"] == st["step"] == s2["step"] and s2["stopped_early"] == st
-    # without the switch the same plateau runs to the end
+    # without the switch the same plateau runs to the end (and nothing is held back)
     s3 = train(tiny_capture, tmp_path / "off", overrides={**ov, "early_stop": False})
     assert s3["step"] == 40 and s3["stopped_early"] is None
+    assert "early_stop_proxy" not in read_run_json(tmp_path / "off")
 
-    # a capture without eval frames: the proxy falls back to train frames (noted in run.json)
+
+def test_early_stop_holds_back_train_frames_and_never_scores_eval_frames(tiny_capture, monkeypatch):
+    """The held-back frames leave the training set, and the proxy scores them (not eval)."""
+    ov = {"iterations": 10, "init": "ply", "early_stop": True, "early_stop_proxy_frames": 2}
+    cap = load_capture(tiny_capture)
+    tr = train_mod.Trainer(cap, get_preset("fast", ov), device="cpu", rgb_only=True)
+    held = {(f.camera, round(f.time, 6)) for f in tr.held_back}
+    assert held == {("rgb0", round(1 / 30, 6)), ("rgb1", round(2 / 30, 6))}
+    trained = {(it["camera"], round(it["time"], 6)) for it in tr.items}
+    assert len(trained) == 4 and not held & trained
+    # every instant is still trained by one camera
+    assert {t for _, t in trained} == {0.0, round(1 / 30, 6), round(2 / 30, 6)}
+    eval_times = {round(f.time, 6) for f in cap.eval_frames}
+    es = tr.early_stop
+    assert [round(vt["time"], 6) for vt in es.frames] == sorted(t for _, t in held)
+    # the proxy images are the held-back train images, not eval images at those times
+    for vt, f in zip(es.frames, tr.held_back):
+        np.testing.assert_array_equal(vt["image"][0].numpy(), np.asarray(f.load_rgb(), np.float32)[..., :3])
+    assert eval_times  # the capture has eval frames: they were available and not used
+    tr.init_model()
+    monkeypatch.setattr(cap.eval_frames[0].__class__, "load_rgb",
+                        lambda self: (_ for _ in ()).throw(AssertionError("eval frame read")), raising=True)
+    assert np.isfinite(es.score(tr.model))
+
+
+def test_early_stop_is_off_without_a_multi_camera_instant(tiny_capture, tmp_path):
     import shutil
 
-    cap = tmp_path / "no_eval"
+    cap = tmp_path / "mono"
     shutil.copytree(tiny_capture, cap)
     tj = json.loads((cap / "transforms.json").read_text())
-    tj["eval_frames"] = []
-    tj["cameras"].pop("eval0")
+    tj["frames"] = [f for f in tj["frames"] if f["camera"] != "rgb1"]
+    tj["cameras"].pop("rgb1")
     (cap / "transforms.json").write_text(json.dumps(tj))
-    s4 = train(cap, tmp_path / "es_train", overrides=ov)
-    assert s4["stopped_early"] is not None and s4["stopped_early"]["proxy"] == "train" and s4["step"] < 40
-    note = read_run_json(tmp_path / "es_train")["early_stop_proxy"]
-    assert note["source"] == "train" and "no eval frames" in note["note"]
+    ov = {"iterations": 12, "init": "ply", "early_stop": True, "early_stop_proxy_frames": 2}
+    s = train(cap, tmp_path / "run", overrides=ov, rgb_only=True)
+    assert s["step"] == 12 and s["stopped_early"] is None
+    note = read_run_json(tmp_path / "run")["early_stop_proxy"]
+    assert note["source"] is None and "no train frame can be held back" in note["note"]
 
 
 def test_cull_frustum_prunes_gaussians_behind_every_camera(tiny_capture, tmp_path, monkeypatch):
