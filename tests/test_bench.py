@@ -15,26 +15,33 @@ import torch
 from engine import bench
 
 
-def _tiny_capture(root: Path) -> Path:
-    """Two train frames and four eval frames of a static 16x12 camera (ours layout)."""
+def _tiny_capture(root: Path, stereo: bool = False) -> Path:
+    """Two train frames and four eval frames of a static 16x12 camera (ours layout);
+    ``stereo``: a second train camera beside it (early stopping holds one of its frames back)."""
     from engine.cameras import look_at_c2w
     from engine.images import write_png
 
     root.mkdir(parents=True)
     c2w = look_at_c2w((0.0, -4.0, 0.0), (0.0, 0.0, 0.0)).tolist()
+    c2w2 = look_at_c2w((0.2, -4.0, 0.0), (0.0, 0.0, 0.0)).tolist()
     rng = np.random.default_rng(0)
     base = rng.random((12, 16, 3)).astype(np.float32)
     frames, evals = [], []
     for i in range(2):
         write_png(root / f"t{i}.png", base)
         frames.append({"file_path": f"t{i}.png", "camera": "cam", "time": i * 0.1, "transform_matrix": c2w})
+        if stereo:
+            frames.append({"file_path": f"t{i}.png", "camera": "cam2", "time": i * 0.1, "transform_matrix": c2w2})
     for i in range(4):
         img = base.copy()
         img[:, 4 * i:4 * i + 2] = 1.0  # a moving bar; the rest is static
         write_png(root / f"e{i}.png", img)
         evals.append({"file_path": f"e{i}.png", "camera": "ev", "time": i * 0.05, "transform_matrix": c2w})
     intr = {"w": 16, "h": 12, "fl_x": 14.0, "fl_y": 14.0, "cx": 8.0, "cy": 6.0}
-    data = {"cameras": {"cam": dict(intr), "ev": dict(intr, role="eval")}, "frames": frames, "eval_frames": evals}
+    cams = {"cam": dict(intr), "ev": dict(intr, role="eval")}
+    if stereo:
+        cams["cam2"] = dict(intr)
+    data = {"cameras": cams, "frames": frames, "eval_frames": evals}
     (root / "transforms.json").write_text(json.dumps(data))
     return root
 
@@ -181,7 +188,10 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
     assert "stopped at 6/9" in md and "culled 7" in md and "frozen 50% at end, woken 2" in md
 
 
-def test_skip_variants_with_the_real_trainer(tmp_path, capture):
+def test_skip_variants_with_the_real_trainer(tmp_path):
+    from engine.capture import load_capture
+
+    capture = load_capture(_tiny_capture(tmp_path / "cap", stereo=True))
     ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
           "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,
           "freeze_motion_eps_px": 100.0, "early_stop_min_deform_fraction": 0.0, "early_stop_patience": 1,
