@@ -816,7 +816,56 @@ def reestimate_steps(trainer: Trainer, done: int, step_seconds: float, probe: di
     return rec
 
 
+DEFORM_REESTIMATE_EVERY = 0.1  # in the deformation stage: re-estimate after every this share of the total
+END_RESERVE_S = 0.15  # the final checkpoint and run.json after the last step (~0.1 s on the demo)
+
+
+def reestimate_deform_steps(trainer: Trainer, done: int, step_seconds: float, remaining_s: float) -> dict:
+    """In the deformation stage: the total that ends the run at its budget, from the
+    measured seconds per step of the latest deformation steps.
+
+    One up-front estimate cannot know how the step cost grows with densification and the
+    curriculum (the probe's fixed 1.5x growth made runs end 17% early, issue 13), so the
+    deformation stage re-plans from its own recent rate every ``DEFORM_REESTIMATE_EVERY``
+    of the run; a rising cost is caught by the next re-estimate, and the budget's hard stop
+    bounds the last one. The new total keeps the schedule's stage (``static_steps <= done``)
+    and lets at least the next step run. Returns the record for run.json."""
+    cfg = trainer.cfg
+    old = trainer.total_steps
+    new = done + max(1, int(max(0.0, remaining_s) / max(step_seconds, 1e-6)))
+    rec = {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
+           "total_steps": int(new)}
+    if cfg.static_fraction > 0:
+        cap = int(math.floor((done + 0.5) / cfg.static_fraction)) + 1
+        while int(round(cfg.static_fraction * cap)) > done:
+            cap -= 1
+        if new > cap:
+            rec["total_steps"] = int(max(cap, done + 1))
+            rec["clamped"] = True
+    rec["previous_total_steps"] = int(old)
+    return rec
+
+
 # ---------------------------------------------------------------------------------- train()
+def warm_up_runtime(device) -> float:
+    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the numba kernels
+    that training calls -- rasterizer, PNG row decoder -- and import what torch imports on
+    its first optimizer (torch._dynamo: 2-5 s), so that none of it is charged to a
+    ``--seconds`` budget (issue 13: a 60 s first Reconstruct in Blender got 20 steps).
+    Returns the seconds taken (run.json ``warmup_seconds``)."""
+    t0 = time.perf_counter()
+    if torch.device(device).type == "cpu":
+        from .raster import warmup
+
+        warmup("cpu")
+    from .images import _unfilter_impl
+
+    dec = _unfilter_impl()
+    dec(np.zeros(2 * 5, np.uint8), 2, 4, 1, np.zeros((2, 4), np.uint8))
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
+    return time.perf_counter() - t0
+
+
 def train(capture, out_dir, *, preset: str = "fast", seconds: float | None = None, rgb_only: bool = False,
           resume: bool = True, device=None, seed: int = 0, progress=None, cancel=None,
           overrides: dict | None = None) -> dict:
@@ -832,13 +881,15 @@ def train(capture, out_dir, *, preset: str = "fast", seconds: float | None = Non
         # machine is idle and, with OpenMP spin-waits, costs 10x+ when the cores are shared.
         torch.set_num_threads(1)
     try:
+        warm_s = warm_up_runtime(dev)  # before the budget's clock starts
         return _train(capture, out_dir, preset=preset, seconds=seconds, rgb_only=rgb_only, resume=resume, dev=dev,
-                      seed=seed, progress=progress, cancel=cancel, overrides=overrides)
+                      seed=seed, progress=progress, cancel=cancel, overrides=overrides, warmup_seconds=warm_s)
     finally:
         torch.set_num_threads(threads)
 
 
-def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, progress, cancel, overrides) -> dict:
+def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, progress, cancel, overrides,
+           warmup_seconds: float = 0.0) -> dict:
     t_start = time.perf_counter()
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -893,7 +944,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         "seed": seed, "rgb_only": rgb_only, "device": str(dev), "status": "running", "step": start_step,
         "total_steps": total, "train_seconds": prior_seconds, "created": _now(), "time_range": list(trainer.time_range),
         "init": trainer.init_info, "seconds_budget": seconds, "resumed_from": start_step if resumed else None,
-        "host": platform.node(), **skip_notes,
+        "host": platform.node(), "warmup_seconds": round(warmup_seconds, 3), **skip_notes,
     }
     if budget_estimates is not None:
         run_info["budget_estimates"] = budget_estimates
@@ -923,6 +974,10 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     step = start_step
     t_first = None  # after the first step of this call (the re-estimate's rate excludes it)
     reestimate_step = reestimate_at(total) if budget_estimates is not None else None
+    deform_mark = None  # (step, time) where the current deformation-stage rate window starts
+    next_deform_check = None
+    if budget_estimates is not None:
+        budget_estimates["deform"] = []
     out = {"loss": float("nan"), "psnr": float("nan")}
     try:
         while step < total and stopped_early is None:
@@ -948,6 +1003,21 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                     if early is not None:
                         early._next = min(early._next, step + early.every(total))
                 update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
+            if budget_estimates is not None and trainer.stage_of(step - 1) == "deform":
+                if deform_mark is None:  # the first deformation step is done (it sets up the field: not timed)
+                    deform_mark = (step, now)
+                    next_deform_check = step + max(5, int(0.5 * DEFORM_REESTIMATE_EVERY * total))
+                elif step >= next_deform_check and step < total:
+                    rate = (now - deform_mark[1]) / max(1, step - deform_mark[0])
+                    rec = reestimate_deform_steps(trainer, step, rate, budget_end - now - END_RESERVE_S)
+                    budget_estimates["deform"].append(rec)
+                    if rec["total_steps"] != total:
+                        total = trainer.total_steps = rec["total_steps"]
+                        if early is not None:
+                            early._next = min(early._next, step + early.every(total))
+                    deform_mark = (step, now)
+                    next_deform_check = step + max(5, int(DEFORM_REESTIMATE_EVERY * total))
+                    update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
             if progress is not None:
                 el = now - loop_t0
                 rate = el / max(1, step - start_step)

@@ -513,6 +513,60 @@ def test_seconds_budget_is_re_estimated_from_the_real_steps(tiny_capture, tmp_pa
     assert s["budget_estimates"] == est
 
 
+@pytest.mark.parametrize("profile", ["cheaper", "growing"])
+def test_seconds_budget_run_ends_within_5_percent_of_its_budget(tiny_capture, tmp_path, monkeypatch, profile):
+    """The deformation stage's cost is unknown up front: cheaper than probed (a run sized
+    by the probe alone ends far too early, issue 13) or growing step by step (densification).
+    The deformation-stage re-estimates end the run within 5% of its budget either way."""
+    import time as _time
+
+    monkeypatch.setattr(train_mod, "_measure_step_seconds", lambda trainer: (0.01, 0.02))
+
+    def step(self, i):
+        if self.stage_of(i) == "static":
+            cost = 0.01
+        elif profile == "cheaper":
+            cost = 0.006
+        else:
+            cost = 0.01 + 0.02 * min(1.0, i / max(1, self.total_steps))
+        _time.sleep(cost)
+        return {"loss": 0.0, "psnr": 0.0, "stage": self.stage_of(i), "losses": {}, "densify": {}}
+
+    monkeypatch.setattr(train_mod.Trainer, "step", step)
+    budget = 6.0
+    s = train(tiny_capture, tmp_path / "run", seconds=budget, overrides={"init": "ply", "static_fraction": 0.2})
+    est = s["budget_estimates"]
+    assert len(est["deform"]) >= 3, est
+    assert 0.95 * budget <= s["train_seconds"] <= budget + 0.3, s
+    assert s["step"] >= 0.97 * s["total_steps"]  # the schedule ran (nearly) to its end
+    assert read_run_json(tmp_path / "run")["budget_estimates"]["deform"] == est["deform"]
+
+
+def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
+    from engine.capture import load_capture
+    from engine.train import Trainer, reestimate_deform_steps
+
+    cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
+    tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
+    rec = reestimate_deform_steps(tr, 400, 0.01, remaining_s=5.0)    # 500 more steps fit
+    assert rec["total_steps"] == 900 and "clamped" not in rec
+    rec = reestimate_deform_steps(tr, 400, 0.001, remaining_s=100.0)  # would put step 400 back in the static stage
+    assert rec["clamped"] and int(round(0.3 * rec["total_steps"])) <= 400 < int(round(0.3 * (rec["total_steps"] + 2)))
+    rec = reestimate_deform_steps(tr, 400, 0.5, remaining_s=-1.0)     # over budget: the next step still runs
+    assert rec["total_steps"] == 401
+
+
+def test_warm_up_runs_before_the_budget_clock(tiny_capture, tmp_path, monkeypatch):
+    """Kernel compilation / first imports are not charged to --seconds: run.json has them apart."""
+    import time as _time
+
+    monkeypatch.setattr(train_mod, "warm_up_runtime", lambda device: (_time.sleep(1.5), 1.5)[1])
+    s = train(tiny_capture, tmp_path / "run", seconds=3.0, overrides={"init": "ply"}, rgb_only=True)
+    info = read_run_json(tmp_path / "run")
+    assert info["warmup_seconds"] == 1.5 and s["train_seconds"] <= 3.3
+    assert 0.95 * 3.0 <= s["train_seconds"]
+
+
 def test_budget_re_estimate_keeps_the_schedule_consistent(tiny_capture):
     from engine.capture import load_capture
     from engine.train import Trainer, reestimate_steps
