@@ -848,20 +848,19 @@ def reestimate_deform_steps(trainer: Trainer, done: int, step_seconds: float, re
 
 # ---------------------------------------------------------------------------------- train()
 def warm_up_runtime(device) -> float:
-    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the numba kernels
-    that training calls -- rasterizer, PNG row decoder -- and import what torch imports on
+    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the rasterizer's
+    numba kernels that every training step calls, and import what torch imports on
     its first optimizer (torch._dynamo: 2-5 s), so that none of it is charged to a
     ``--seconds`` budget (issue 13: a 60 s first Reconstruct in Blender got 20 steps).
-    Returns the seconds taken (run.json ``warmup_seconds``)."""
+    Returns the seconds taken (run.json ``warmup_seconds``). (The PNG row decoder's kernel is
+    not warmed: its numba cache is keyed by file, not import name, so inside Blender a
+    cache written by ``python -m engine`` cannot be loaded (the same ModuleNotFoundError the
+    rasterizer's per-import-name cache locator avoids): it stays lazy, as before.)"""
     t0 = time.perf_counter()
     if torch.device(device).type == "cpu":
         from .raster import warmup
 
         warmup("cpu")
-    from .images import _unfilter_impl
-
-    dec = _unfilter_impl()
-    dec(np.zeros(2 * 5, np.uint8), 2, 4, 1, np.zeros((2, 4), np.uint8))
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
     return time.perf_counter() - t0
 

@@ -764,6 +764,25 @@ def _quat_rot(quats, n, R):
     return w, x, y, z, inv
 
 
+@njit(cache=True, nogil=True)
+def _cam_table(viewmats, Ks, width, height):
+    """[C, 8] float64: each camera's ``_cam_setup`` computed once per call rather than once
+    per Gaussian and camera (four divisions each)."""
+    C = viewmats.shape[0]
+    out = np.empty((C, 8), np.float64)
+    for c in range(C):
+        v = _cam_setup(viewmats, Ks, c, width, height)
+        for j in range(8):
+            out[c, j] = v[j]
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cam_row(cams, c):
+    return (cams[c, 0], cams[c, 1], cams[c, 2], cams[c, 3], cams[c, 4], cams[c, 5], cams[c, 6],
+            cams[c, 7])
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _cam_setup(viewmats, Ks, c, width, height):
     fx = np.float64(Ks[c, 0, 0])
@@ -783,17 +802,17 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
     -> out_m2d [C,N,2], out_conic [C,N,3], out_z [C,N], out_radii [C,N,2] int32 (0 = culled).
     Depth-culled Gaussians get zero means2d / conics."""
     N = means.shape[0]
-    C = viewmats.shape[0]
+    cams = _cam_table(viewmats, Ks, width, height)
     for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
         Rq = np.empty((3, 3), np.float64)
         M = np.empty((3, 3), np.float64)
         for n in range(chunk * PROJ_CHUNK, min(N, (chunk + 1) * PROJ_CHUNK)):
-            _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height, near,
+            _project_one_fwd(n, means, quats, scales, opac, viewmats, cams, width, height, near,
                              far, eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height, near, far,
+def _project_one_fwd(n, means, quats, scales, opac, viewmats, cams, width, height, near, far,
                      eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M):
     C = viewmats.shape[0]
     if True:
@@ -806,7 +825,7 @@ def _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height,
         mz = np.float64(means[n, 2])
         op = np.float64(opac[n])
         for c in range(C):
-            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_setup(viewmats, Ks, c, width, height)
+            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_row(cams, c)
             px = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
             py = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
             pz = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
@@ -866,6 +885,7 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
     """Gradients of project_fwd's means2d / conics / z w.r.t. means, quats, scales
     (v_means [N,3], v_quats [N,4], v_scales [N,3] are written, not accumulated)."""
     N = means.shape[0]
+    cams = _cam_table(viewmats, Ks, width, height)
     for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
         Rq = np.empty((3, 3), np.float64)
         M = np.empty((3, 3), np.float64)
@@ -876,13 +896,13 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
         T0 = np.empty(3, np.float64)
         T1 = np.empty(3, np.float64)
         for n in range(chunk * PROJ_CHUNK, min(N, (chunk + 1) * PROJ_CHUNK)):
-            _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near, far,
+            _project_one_bwd(n, means, quats, scales, viewmats, cams, width, height, near, far,
                              eps2d, v_m2d, v_conic, v_z, v_means, v_quats, v_scales,
                              Rq, M, gM, G, a, b, T0, T1)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+def _project_one_bwd(n, means, quats, scales, viewmats, cams, width, height, near, far, eps2d,
                      v_m2d, v_conic, v_z, v_means, v_quats, v_scales, Rq, M, gM, G, a, b, T0, T1):
     C = viewmats.shape[0]
     if True:
@@ -902,7 +922,7 @@ def _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near,
             gmx += viewmats[c, 2, 0] * gz
             gmy += viewmats[c, 2, 1] * gz
             gmz += viewmats[c, 2, 2] * gz
-            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_setup(viewmats, Ks, c, width, height)
+            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_row(cams, c)
             px = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
             py = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
             pz = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
