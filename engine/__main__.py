@@ -20,6 +20,7 @@ COMMANDS = {
     "spikes": "spikes",
     "bench-decode": "bench_decode",
     "bench-raster": "bench_raster",
+    "bench-step": "bench_step",
     "bench": "bench",
     "stress": "stress",
     "ablate": "ablate",
