@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import engine.raster as raster
-from engine.cli import bench_step
-from engine.deformation import DeformationField
 from engine.raster import cpu as raster_cpu
-from engine.render_views import write_synthetic_capture
+from engine.scene import model as scene_model
+from engine.scene.deformation import DeformationField
+from tools import bench_step
+from tools.synthetic import write_synthetic_capture
 
 
 @pytest.fixture(scope="module")
@@ -19,10 +19,10 @@ def capture(tmp_path_factory):
 
 
 def test_step_profile_charges_every_part_and_restores_the_patches(capture):
-    before = (raster.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward)
+    before = (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward)
     prof, counts = bench_step.profile_runs(capture, 12, overrides={"init": "ply", "static_fraction": 0.25},
                                            spike=False)
-    assert (raster.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward) == before
+    assert (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward) == before
     static, deform = prof.table("static"), prof.table("rgb_deform")
     assert static["steps"] == 2 and deform["steps"] == 8  # 12 steps less the two set-up steps
     for tab in (static, deform):

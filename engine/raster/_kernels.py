@@ -352,7 +352,8 @@ TS2 = 64
 SPX, SPY, ST, SACT, SLAST, SA0, SA1, SA2, SA3 = 0, 64, 128, 192, 256, 320, 384, 448, 512
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp"})
-def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, out_feat, out_alpha, final_t, last_i):
+def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, out_feat, out_alpha,
+               final_t, last_i):
     c = tile // n_tiles
     t = tile - c * n_tiles
     ty = t // tiles_x
@@ -434,7 +435,8 @@ BPX, BPY, BT, BTF, BLAST, BVA, BV0, BV1, BV2, BV3, BB0, BB1, BB2, BB3 = [j * TS2
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp", "reassoc"})
-def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, final_t, last_i, v_feat, v_alpha, v_isect):
+def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, final_t, last_i, v_feat,
+               v_alpha, v_isect):
     c = tile // n_tiles
     t = tile - c * n_tiles
     ty = t // tiles_x

@@ -1,0 +1,138 @@
+"""The wall-clock budget: how many steps fit in ``seconds``.
+
+The step count is chosen up front from the measured cost of a few throw-away steps on a
+copy of the model (:func:`measure_step_seconds`, :func:`steps_for_budget`), then
+re-estimated from the rate of the real steps after ~5% of the run
+(:func:`reestimate_at`, :func:`reestimate_steps`), while the run is still in the static
+stage so that every schedule (a fraction of the total) stays consistent, and again every
+10% of the deformation stage from that stage's own rate (:func:`reestimate_deform_steps`).
+Kernel compilation and first imports run before the budget's clock starts
+(:func:`warm_up_runtime`).
+"""
+from __future__ import annotations
+
+import copy
+import math
+import time
+
+import numpy as np
+import torch
+
+from ..raster import warmup as raster_warmup
+from .presets import TrainConfig
+
+__all__ = ["DEFORM_REESTIMATE_EVERY", "END_RESERVE_S", "REESTIMATE_FRACTION", "measure_step_seconds", "reestimate_at",
+           "reestimate_deform_steps", "reestimate_steps", "steps_for_budget", "warm_up_runtime"]
+
+
+def measure_step_seconds(trainer, n_static: int = 4, n_deform: int = 4) -> tuple[float, float]:
+    """Median seconds per step in each stage, from throw-away steps on a copy of the model."""
+    probe = copy.copy(trainer)
+    probe.model = copy.deepcopy(trainer.model)
+    vars(probe.model.gaussians).pop("_replace", None)  # the freezer's watch belongs to the real model
+    probe.model.gaussians.setup_optimizer(trainer.cfg, trainer.extent)
+    probe.deform_opt = None
+    probe.freeze = probe.early_stop = probe.cull = None
+    probe.total_steps = 10 ** 6
+    times = {}
+    for stage, n in (("static", n_static), ("deform", n_deform)):
+        probe.cfg = copy.copy(trainer.cfg)
+        probe.cfg.static_fraction = 1.0 if stage == "static" else 0.0
+        # the whole capture time admitted: a step at the curriculum's start would skip the
+        # spike branch's in-between render (engine.train.instants), and under-price every later step
+        probe.cfg.time_curriculum = 0.0
+        probe.cfg.densify_from = probe.cfg.densify_until = 2.0  # no densification in the probe
+        times[stage] = []
+        for i in range(n):
+            t0 = time.perf_counter()
+            probe.step(i)
+            times[stage].append(time.perf_counter() - t0)
+    med = lambda v: float(np.median(v[1:] if len(v) > 1 else v))  # noqa: E731 (first call warms up)
+    return med(times["static"]), med(times["deform"])
+
+
+def steps_for_budget(seconds: float, t_static: float, t_deform: float, cfg: TrainConfig,
+                     growth: float = 1.5, reserve_s: float = 0.0) -> int:
+    """Steps that fit in ``seconds`` given per-step costs (Gaussian growth factored in)."""
+    per = (cfg.static_fraction * t_static + (1 - cfg.static_fraction) * t_deform) * growth
+    return max(20, int((max(0.0, seconds - reserve_s)) / max(per, 1e-4)))
+
+
+REESTIMATE_FRACTION = 0.05  # re-estimate the budget's step count after this share of the probe's estimate
+
+
+def reestimate_at(total_steps: int) -> int:
+    """Completed steps after which a budget run re-estimates its step count (>= 6, so that
+    the rate excludes the first step and still averages a few)."""
+    return max(6, int(math.ceil(REESTIMATE_FRACTION * total_steps)))
+
+
+def reestimate_steps(trainer, done: int, step_seconds: float, probe: dict, loop_seconds: float) -> dict:
+    """The budget's step count from the measured seconds per (static) step of the real run.
+
+    ``probe``: the up-front estimate (``static_step_s``, ``deform_step_s``); the deformation
+    steps are scaled by the same factor as the static ones. Only while the run is still in
+    the static stage (the schedules are fractions of the total): the new total is clamped so
+    that the next step stays static. Returns the record for run.json (``total_steps`` is the
+    new total, or the old one with ``skipped``)."""
+    cfg = trainer.cfg
+    old = trainer.total_steps
+    scale = step_seconds / max(probe["static_step_s"], 1e-9)
+    rec = {"at_step": int(done), "static_step_s": round(step_seconds, 5),
+           "deform_step_s": round(probe["deform_step_s"] * scale, 5), "total_steps": old}
+    if cfg.static_fraction <= 0 or done >= trainer.static_steps:
+        rec["skipped"] = "the deformation stage has started (its schedule is a fraction of the total)"
+        return rec
+    new = steps_for_budget(loop_seconds, step_seconds, probe["deform_step_s"] * scale, cfg)
+    new = max(new, done + 1)
+    while int(round(cfg.static_fraction * new)) <= done:  # keep the next step in the static stage
+        new += 1
+        rec["clamped"] = True
+    rec["total_steps"] = int(new)
+    return rec
+
+
+DEFORM_REESTIMATE_EVERY = 0.1  # in the deformation stage: re-estimate after every this share of the total
+END_RESERVE_S = 0.15  # the final checkpoint and run.json after the last step (~0.1 s on the demo)
+
+
+def reestimate_deform_steps(trainer, done: int, step_seconds: float, remaining_s: float) -> dict:
+    """In the deformation stage: the total that ends the run at its budget, from the
+    measured seconds per step of the latest deformation steps.
+
+    One up-front estimate cannot know how the step cost grows with densification and the
+    curriculum (the probe's fixed 1.5x growth made runs end 17% early, issue 13), so the
+    deformation stage re-plans from its own recent rate every ``DEFORM_REESTIMATE_EVERY``
+    of the run; a rising cost is caught by the next re-estimate, and the budget's hard stop
+    bounds the last one. The new total keeps the schedule's stage (``static_steps <= done``)
+    and lets at least the next step run. Returns the record for run.json."""
+    cfg = trainer.cfg
+    old = trainer.total_steps
+    new = done + max(1, int(max(0.0, remaining_s) / max(step_seconds, 1e-6)))
+    rec = {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
+           "total_steps": int(new)}
+    if cfg.static_fraction > 0:
+        cap = int(math.floor((done + 0.5) / cfg.static_fraction)) + 1
+        while int(round(cfg.static_fraction * cap)) > done:
+            cap -= 1
+        if new > cap:
+            rec["total_steps"] = int(max(cap, done + 1))
+            rec["clamped"] = True
+    rec["previous_total_steps"] = int(old)
+    return rec
+
+
+def warm_up_runtime(device) -> float:
+    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the rasterizer's
+    numba kernels that every training step calls, and import what torch imports on
+    its first optimizer (torch._dynamo: 2-5 s), so that none of it is charged to a
+    ``--seconds`` budget (issue 13: a 60 s first Reconstruct in Blender got 20 steps).
+    Returns the seconds taken (run.json ``warmup_seconds``). (The PNG row decoder's kernel is
+    not warmed: its numba cache is keyed by file, not import name, so inside Blender a
+    cache written by ``python -m engine`` cannot be loaded (the same ModuleNotFoundError the
+    rasterizer's per-import-name cache locator avoids): it stays lazy, as before.)"""
+    t0 = time.perf_counter()
+    if torch.device(device).type == "cpu":
+        raster_warmup("cpu")
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
+    return time.perf_counter() - t0
