@@ -51,6 +51,7 @@ class StepProfiler:
         self.by_label: dict[str, dict] = {}
         self.totals = {c: 0.0 for c in CATEGORIES}  # the accumulator in use (scratch outside run_step)
         self._bwd_charged = 0.0
+        self._in_window = 0.0
         self._stack: list[list] = []  # [category, start, child seconds]
         self._patches: list[tuple] = []
         self._field_bwd_start = None
@@ -68,6 +69,8 @@ class StepProfiler:
         cat, t0, child = self._stack.pop()
         dt = time.perf_counter() - t0
         self.totals[cat] += dt - child
+        if self._field_bwd_start is not None:  # charged already: not the field's backward
+            self._in_window += dt - child
         if self._stack:
             self._stack[-1][2] += dt
         return dt
@@ -99,10 +102,13 @@ class StepProfiler:
         def started(_g):
             if prof._field_bwd_start is None:
                 prof._field_bwd_start = time.perf_counter()
+                prof._in_window = 0.0
 
         def done(_grads):
             if prof._field_bwd_start is not None:
-                dt = time.perf_counter() - prof._field_bwd_start
+                # less what ran meanwhile and is charged elsewhere (the spike branch's second
+                # render's rasterizer backward runs inside this window)
+                dt = time.perf_counter() - prof._field_bwd_start - prof._in_window
                 prof.totals["field_bwd"] += dt
                 prof._bwd_charged += dt
                 prof._field_bwd_start = None
