@@ -565,10 +565,12 @@ def test_warm_up_runs_before_the_budget_clock(tiny_capture, tmp_path, monkeypatc
     import time as _time
 
     monkeypatch.setattr(run_mod, "warm_up_runtime", lambda device: (_time.sleep(1.5), 1.5)[1])
+    t0 = _time.perf_counter()
     s = train(tiny_capture, tmp_path / "run", seconds=3.0, overrides={"init": "ply"}, rgb_only=True)
+    wall = _time.perf_counter() - t0
     info = read_run_json(tmp_path / "run")
     assert info["warmup_seconds"] == 1.5 and s["train_seconds"] <= 3.3
-    assert 0.95 * 3.0 <= s["train_seconds"]
+    assert wall - s["train_seconds"] >= 1.5  # the warm-up ran, outside the budget's clock
 
 
 def test_budget_re_estimate_keeps_the_schedule_consistent(tiny_capture):
