@@ -15,26 +15,33 @@ import torch
 from tools import bench, micro
 
 
-def _tiny_capture(root: Path) -> Path:
-    """Two train frames and four eval frames of a static 16x12 camera (ours layout)."""
+def _tiny_capture(root: Path, stereo: bool = False) -> Path:
+    """Two train frames and four eval frames of a static 16x12 camera (ours layout);
+    ``stereo``: a second train camera beside it (early stopping holds one of its frames back)."""
     from engine.cameras import look_at_c2w
     from engine.io.images import write_png
 
     root.mkdir(parents=True)
     c2w = look_at_c2w((0.0, -4.0, 0.0), (0.0, 0.0, 0.0)).tolist()
+    c2w2 = look_at_c2w((0.2, -4.0, 0.0), (0.0, 0.0, 0.0)).tolist()
     rng = np.random.default_rng(0)
     base = rng.random((12, 16, 3)).astype(np.float32)
     frames, evals = [], []
     for i in range(2):
         write_png(root / f"t{i}.png", base)
         frames.append({"file_path": f"t{i}.png", "camera": "cam", "time": i * 0.1, "transform_matrix": c2w})
+        if stereo:
+            frames.append({"file_path": f"t{i}.png", "camera": "cam2", "time": i * 0.1, "transform_matrix": c2w2})
     for i in range(4):
         img = base.copy()
         img[:, 4 * i:4 * i + 2] = 1.0  # a moving bar; the rest is static
         write_png(root / f"e{i}.png", img)
         evals.append({"file_path": f"e{i}.png", "camera": "ev", "time": i * 0.05, "transform_matrix": c2w})
     intr = {"w": 16, "h": 12, "fl_x": 14.0, "fl_y": 14.0, "cx": 8.0, "cy": 6.0}
-    data = {"cameras": {"cam": dict(intr), "ev": dict(intr, role="eval")}, "frames": frames, "eval_frames": evals}
+    cams = {"cam": dict(intr), "ev": dict(intr, role="eval")}
+    if stereo:
+        cams["cam2"] = dict(intr)
+    data = {"cameras": cams, "frames": frames, "eval_frames": evals}
     (root / "transforms.json").write_text(json.dumps(data))
     return root
 
@@ -164,7 +171,7 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
         ov = kw["overrides"]
         s["skips"] = {}
         if ov.get("early_stop"):
-            s["skips"]["early_stop"] = {"proxy": "eval", "frames": [str(capture.eval_frames[0].path)],
+            s["skips"]["early_stop"] = {"proxy": "held_back_train", "frames": ["train:rgb0@0.033333"],
                                         "stopped_at": {"step": 6, "total_steps": 9}, "history": []}
         if ov.get("cull_frustum"):
             s["skips"]["cull"] = {"pruned": 7, "events": []}
@@ -182,14 +189,16 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
     assert seen["fast-rgb_only"][1] is True and all(ov["max_gaussians"] == 500 for ov, _ in seen.values())
     by = {r.variant: r for r in res["results"]}
     assert by["cull"].extra["cull"]["pruned"] == 7 and by["freeze"].extra["freeze"]["woken"] == 2
-    # the proxy frame is scored separately
-    assert np.isfinite(by["early_stop"].final["psnr_excl_proxy"]) and "psnr_excl_proxy" not in by["full"].final
+    assert by["early_stop"].extra["early_stop"]["proxy"] == "held_back_train"
     md = res["markdown"]
     assert "stopped at 6/9" in md and "culled 7" in md and "frozen 50% at end, woken 2" in md
 
 
 @pytest.mark.slow
-def test_skip_variants_with_the_real_trainer(tmp_path, capture):
+def test_skip_variants_with_the_real_trainer(tmp_path):
+    from engine.io.capture import load_capture
+
+    capture = load_capture(_tiny_capture(tmp_path / "cap", stereo=True))
     ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
           "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,
           "freeze_motion_eps_px": 100.0, "early_stop_min_deform_fraction": 0.0, "early_stop_patience": 1,
@@ -202,7 +211,7 @@ def test_skip_variants_with_the_real_trainer(tmp_path, capture):
             assert r.extra["freeze"]["checks"] > 0 and r.extra["freeze"]["fraction_frozen"] > 0
         elif variant == "early_stop":  # a gain of 100 dB never comes: stops at the first deformation evaluation
             assert r.summary["stopped_early"] and r.summary["step"] < 10
-            assert "psnr_excl_proxy" in r.final
+            assert r.extra["early_stop"]["proxy"] == "held_back_train"  # never the eval frames
         else:
             assert "pruned" in r.extra["cull"]
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from engine.evaluate.heldout import evaluate
+from engine.io.capture import load_capture
 from engine.io.checkpoint import load_checkpoint, read_run_json
 from engine.train import budget as budget_mod
 from engine.train import run as run_mod
@@ -365,40 +366,72 @@ def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_
     assert moved[mask.numpy()].max() == 0.0 and moved.max() > 0
 
 
-def test_early_stop_stops_on_a_plateau_with_eval_or_train_proxy(tiny_capture, tmp_path):
+def test_early_stop_stops_on_a_plateau_with_held_back_train_proxy(tiny_capture, tmp_path):
     ov = {"iterations": 40, "static_fraction": 0.25, "init": "ply", "densify_from": 2.0, "early_stop": True,
           "early_stop_proxy_frames": 2, **FROZEN_LRS}
     run = tmp_path / "es"
     s = train(tiny_capture, run, overrides=ov, rgb_only=True)
     st = s["stopped_early"]
-    assert s["status"] == "finished" and st is not None and st["proxy"] == "eval"
+    assert s["status"] == "finished" and st is not None and st["proxy"] == "held_back_train"
     assert s["step"] == st["step"] < s["total_steps"] == 40
     # evaluations every 2 steps (1, 3, 5, ...); the deformation stage (from step 10) must run
     # 25% of its 30 steps before 3 evaluations without a gain (19, 21, 23) stop it
     assert st["step"] == 23, st
     info = read_run_json(run)
     assert info["status"] == "finished" and info["stopped_early"] == st and info["step"] == st["step"]
-    assert info["early_stop_proxy"]["source"] == "eval" and len(info["early_stop_proxy"]["frames"]) == 2
+    proxy = info["early_stop_proxy"]
+    # the proxy is train frames (one camera each at the 2nd and 3rd instant), never eval frames
+    assert proxy["source"] == "held_back_train" and len(proxy["frames"]) == 2
+    assert proxy["frames"] == ["train:rgb0@0.033333", "train:rgb1@0.066667"], proxy
+    cap = load_capture(tiny_capture)
+    assert not {str(f.path) for f in cap.eval_frames} & set(proxy["frames"])
     # resuming a run that stopped early does not train on
     s2 = train(tiny_capture, run, overrides=ov, rgb_only=True)
     assert s2["resumed_from"] == st["step"] == s2["step"] and s2["stopped_early"] == st
-    # without the switch the same plateau runs to the end
+    # without the switch the same plateau runs to the end (and nothing is held back)
     s3 = train(tiny_capture, tmp_path / "off", overrides={**ov, "early_stop": False})
     assert s3["step"] == 40 and s3["stopped_early"] is None
+    assert "early_stop_proxy" not in read_run_json(tmp_path / "off")
 
-    # a capture without eval frames: the proxy falls back to train frames (noted in run.json)
+
+def test_early_stop_holds_back_train_frames_and_never_scores_eval_frames(tiny_capture, monkeypatch):
+    """The held-back frames leave the training set, and the proxy scores them (not eval)."""
+    ov = {"iterations": 10, "init": "ply", "early_stop": True, "early_stop_proxy_frames": 2}
+    cap = load_capture(tiny_capture)
+    tr = trainer_mod.Trainer(cap, get_preset("fast", ov), device="cpu", rgb_only=True)
+    held = {(f.camera, round(f.time, 6)) for f in tr.held_back}
+    assert held == {("rgb0", round(1 / 30, 6)), ("rgb1", round(2 / 30, 6))}
+    trained = {(it["camera"], round(it["time"], 6)) for it in tr.items}
+    assert len(trained) == 4 and not held & trained
+    # every instant is still trained by one camera
+    assert {t for _, t in trained} == {0.0, round(1 / 30, 6), round(2 / 30, 6)}
+    eval_times = {round(f.time, 6) for f in cap.eval_frames}
+    es = tr.early_stop
+    assert [round(vt["time"], 6) for vt in es.frames] == sorted(t for _, t in held)
+    # the proxy images are the held-back train images, not eval images at those times
+    for vt, f in zip(es.frames, tr.held_back):
+        np.testing.assert_array_equal(vt["image"][0].numpy(), np.asarray(f.load_rgb(), np.float32)[..., :3])
+    assert eval_times  # the capture has eval frames: they were available and not used
+    tr.init_model()
+    monkeypatch.setattr(cap.eval_frames[0].__class__, "load_rgb",
+                        lambda self: (_ for _ in ()).throw(AssertionError("eval frame read")), raising=True)
+    assert np.isfinite(es.score(tr.model))
+
+
+def test_early_stop_is_off_without_a_multi_camera_instant(tiny_capture, tmp_path):
     import shutil
 
-    cap = tmp_path / "no_eval"
+    cap = tmp_path / "mono"
     shutil.copytree(tiny_capture, cap)
     tj = json.loads((cap / "transforms.json").read_text())
-    tj["eval_frames"] = []
-    tj["cameras"].pop("eval0")
+    tj["frames"] = [f for f in tj["frames"] if f["camera"] != "rgb1"]
+    tj["cameras"].pop("rgb1")
     (cap / "transforms.json").write_text(json.dumps(tj))
-    s4 = train(cap, tmp_path / "es_train", overrides=ov)
-    assert s4["stopped_early"] is not None and s4["stopped_early"]["proxy"] == "train" and s4["step"] < 40
-    note = read_run_json(tmp_path / "es_train")["early_stop_proxy"]
-    assert note["source"] == "train" and "no eval frames" in note["note"]
+    ov = {"iterations": 12, "init": "ply", "early_stop": True, "early_stop_proxy_frames": 2}
+    s = train(cap, tmp_path / "run", overrides=ov, rgb_only=True)
+    assert s["step"] == 12 and s["stopped_early"] is None
+    note = read_run_json(tmp_path / "run")["early_stop_proxy"]
+    assert note["source"] is None and "no train frame can be held back" in note["note"]
 
 
 def test_cull_frustum_prunes_gaussians_behind_every_camera(tiny_capture, tmp_path, monkeypatch):
@@ -482,6 +515,62 @@ def test_seconds_budget_is_re_estimated_from_the_real_steps(tiny_capture, tmp_pa
     assert s["total_steps"] == measured["total_steps"] == read_run_json(run)["total_steps"]
     assert s["status"] == "finished" and s["step"] == s["total_steps"] and not s["stopped_by_budget"]
     assert s["budget_estimates"] == est
+
+
+@pytest.mark.parametrize("profile", ["cheaper", "growing"])
+def test_seconds_budget_run_ends_within_5_percent_of_its_budget(tiny_capture, tmp_path, monkeypatch, profile):
+    """The deformation stage's cost is unknown up front: cheaper than probed (a run sized
+    by the probe alone ends far too early, issue 13) or growing step by step (densification).
+    The deformation-stage re-estimates end the run within 5% of its budget either way."""
+    import time as _time
+
+    monkeypatch.setattr(run_mod, "measure_step_seconds", lambda trainer: (0.01, 0.02))
+
+    def step(self, i):
+        if self.stage_of(i) == "static":
+            cost = 0.01
+        elif profile == "cheaper":
+            cost = 0.006
+        else:
+            cost = 0.01 + 0.02 * min(1.0, i / max(1, self.total_steps))
+        _time.sleep(cost)
+        return {"loss": 0.0, "psnr": 0.0, "stage": self.stage_of(i), "losses": {}, "densify": {}}
+
+    monkeypatch.setattr(trainer_mod.Trainer, "step", step)
+    budget = 6.0
+    s = train(tiny_capture, tmp_path / "run", seconds=budget, overrides={"init": "ply", "static_fraction": 0.2})
+    est = s["budget_estimates"]
+    assert len(est["deform"]) >= 3, est
+    assert 0.95 * budget <= s["train_seconds"] <= budget + 0.3, s
+    assert s["step"] >= 0.97 * s["total_steps"]  # the schedule ran (nearly) to its end
+    assert read_run_json(tmp_path / "run")["budget_estimates"]["deform"] == est["deform"]
+
+
+def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
+    from engine.train.budget import reestimate_deform_steps
+    from engine.train.trainer import Trainer
+
+    cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
+    tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
+    rec = reestimate_deform_steps(tr, 400, 0.01, remaining_s=5.0)    # 500 more steps fit
+    assert rec["total_steps"] == 900 and "clamped" not in rec
+    rec = reestimate_deform_steps(tr, 400, 0.001, remaining_s=100.0)  # would put step 400 back in the static stage
+    assert rec["clamped"] and int(round(0.3 * rec["total_steps"])) <= 400 < int(round(0.3 * (rec["total_steps"] + 2)))
+    rec = reestimate_deform_steps(tr, 400, 0.5, remaining_s=-1.0)     # over budget: the next step still runs
+    assert rec["total_steps"] == 401
+
+
+def test_warm_up_runs_before_the_budget_clock(tiny_capture, tmp_path, monkeypatch):
+    """Kernel compilation / first imports are not charged to --seconds: run.json has them apart."""
+    import time as _time
+
+    monkeypatch.setattr(run_mod, "warm_up_runtime", lambda device: (_time.sleep(1.5), 1.5)[1])
+    t0 = _time.perf_counter()
+    s = train(tiny_capture, tmp_path / "run", seconds=3.0, overrides={"init": "ply"}, rgb_only=True)
+    wall = _time.perf_counter() - t0
+    info = read_run_json(tmp_path / "run")
+    assert info["warmup_seconds"] == 1.5 and s["train_seconds"] <= 3.3
+    assert wall - s["train_seconds"] >= 1.5  # the warm-up ran, outside the budget's clock
 
 
 def test_budget_re_estimate_keeps_the_schedule_consistent(tiny_capture):

@@ -15,6 +15,7 @@ COMMANDS = {
     "stress": "stress",
     "ablate": "ablate",
     "bench-raster": "bench_raster",
+    "bench-step": "bench_step",
     "bench-decode": "bench_decode",
     "import-graph": "import_graph",
     "compact-steps": "compact_steps",

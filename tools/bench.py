@@ -24,12 +24,13 @@ Design (documented here because the numbers depend on it):
 * Peak memory is the process's peak resident set size during the run (Linux ``VmHWM``,
   reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
   process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
-* Early stopping runs inside the trainer: its proxy is the PSNR on a few eval frames
-  (``early_stop_proxy_frames``, reported separately: ``psnr_excl_proxy`` scores the other
-  frames), evaluated every ``early_stop_every_fraction`` of the steps (its cost *is*
-  counted in the wall time); training stops after ``early_stop_patience`` proxy
-  evaluations without a gain of ``early_stop_min_delta`` dB, once the deformation stage has
-  run for ``early_stop_min_deform_fraction`` of its steps.
+* Early stopping runs inside the trainer: its proxy is the PSNR on a few train frames held
+  back from training (``early_stop_proxy_frames``; never eval frames, so every eval figure
+  here is on views the run neither trained on nor stopped by), evaluated every
+  ``early_stop_every_fraction`` of the steps (its cost *is* counted in the wall time);
+  training stops after ``early_stop_patience`` proxy evaluations without a gain of
+  ``early_stop_min_delta`` dB, once the deformation stage has run for
+  ``early_stop_min_deform_fraction`` of its steps.
 * Micro-benchmarks in the same run: rasterizer fast path (``cpu``) vs the dense
   ``reference`` and the plain-PyTorch tiled path (``engine.cli.bench_raster``'s scene and
   timer), and spike decoding ``read_spikes`` vs the community per-frame loader and the
@@ -214,7 +215,6 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
     ov = variant_overrides(variant, overrides, proxy_frames)
     ov["checkpoint_every_s"] = float(eval_every_s)
     cache = FrameCache()
-    all_eval = sorted(capture.eval_frames, key=lambda f: (f.camera, f.time))
     curve_frames = select_eval_frames(capture, eval_stride)
 
     cancel = threading.Event()
@@ -284,11 +284,6 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
 
     final = dict(evaluate_fn(run_dir, capture))
     skips = summary.get("skips") or {}
-    es = skips.get("early_stop") or {}
-    proxy = set(es.get("frames") or []) if es.get("proxy") == "eval" else set()
-    if proxy:
-        rest = [f for f in all_eval if str(f.path) not in proxy]
-        final["psnr_excl_proxy"] = score_model(load_run(run_dir).model, capture, rest, cache)["psnr"]
     if flicker:
         try:
             final["flicker"] = run_flicker(run_dir, capture)
@@ -353,8 +348,6 @@ def markdown(results: list[RunResult], micro: dict, meta: dict) -> str:
         if "early_stop" in r.extra and r.extra["early_stop"]["stopped_at"]:
             s = r.extra["early_stop"]["stopped_at"]
             notes.append(f"stopped at {s['step']}/{s['total_steps']}")
-        if "psnr_excl_proxy" in fin:
-            notes.append(f"PSNR excl. proxy frames {fin['psnr_excl_proxy']:.2f}")
         if "cull" in r.extra:
             notes.append(f"culled {r.extra['cull']['pruned']}")
         if "freeze" in r.extra:

@@ -36,6 +36,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--cold-compile", action="store_true",
                         help="use an empty numba cache dir to time a cold JIT compile")
     parser.add_argument("--sh-degree", type=int, default=None, help="colours as SH of this degree")
+    parser.add_argument("--size", default=None, help="only this image size, e.g. 320x240")
 
 
 def make_scene(n, width, height, seed=0, sh_degree=None):
@@ -58,7 +59,10 @@ def make_scene(n, width, height, seed=0, sh_degree=None):
     return [means, quats, scales, opac, colors, viewmats, Ks]
 
 
-def time_cell(args, width, height, backend, repeats, sh_degree):
+def time_cell(args, width, height, backend, repeats, sh_degree, with_cpu=False):
+    """Median ms of forward and forward+backward (wall), first-call seconds, and with
+    ``with_cpu`` the median process CPU ms of forward+backward (all threads: on a shared
+    machine the steadier measure of the work done)."""
     params = [a.clone().requires_grad_(True) for a in args[:5]]
 
     def fwd():
@@ -75,19 +79,23 @@ def time_cell(args, width, height, backend, repeats, sh_degree):
     t0 = time.perf_counter()
     fwd_bwd()  # warm-up (JIT compile / cache load on the first cell)
     first = time.perf_counter() - t0
-    tf, tb = [], []
+    tf, tb, cb = [], [], []
     for _ in range(repeats):
         with torch.no_grad():
             t0 = time.perf_counter()
             fwd()
             tf.append(time.perf_counter() - t0)
+        c0 = time.process_time()
         t0 = time.perf_counter()
         fwd_bwd()
         tb.append(time.perf_counter() - t0)
+        cb.append(time.process_time() - c0)
 
     def med(v):
         return 1e3 * statistics.median(v) if v else float("nan")
 
+    if with_cpu:
+        return med(tf), med(tb), first, med(cb)
     return med(tf), med(tb), first
 
 
@@ -109,6 +117,9 @@ def main(args) -> int:
 
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     sizes = SIZES[:1] if args.quick else SIZES
+    if args.size:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+        sizes = [(w, h)]
     counts = COUNTS[:2] if args.quick else COUNTS
     repeats = 2 if args.quick else max(1, args.repeats)
 
@@ -135,6 +146,7 @@ def main(args) -> int:
     print(f"load average at start: {load0[0]:.2f} (cores: {os.cpu_count()})")
 
     rows = []
+    cpu_ms = {}
     peaks = {}
     for backend in backends:
         for (w, h) in sizes:
@@ -143,18 +155,20 @@ def main(args) -> int:
                     rows.append((backend, w, h, n, None, None))
                     continue
                 sc = make_scene(n, w, h, sh_degree=args.sh_degree)
-                f, fb, _ = time_cell(sc, w, h, backend, repeats, args.sh_degree)
+                f, fb, _, cfb = time_cell(sc, w, h, backend, repeats, args.sh_degree, with_cpu=True)
                 rows.append((backend, w, h, n, f, fb))
-                print(f"  {backend:9s} {w}x{h} N={n:>6d}: fwd {f:8.1f} ms  fwd+bwd {fb:8.1f} ms",
-                      flush=True)
+                cpu_ms[(backend, w, h, n)] = cfb
+                print(f"  {backend:9s} {w}x{h} N={n:>6d}: fwd {f:8.1f} ms  fwd+bwd {fb:8.1f} ms"
+                      f"  (fwd+bwd CPU {cfb:8.1f} ms)", flush=True)
         peaks[backend] = _maxrss_mb()
     load1 = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
 
     print()
     print("| size | N | " + " | ".join(f"{b} fwd ms | {b} fwd+bwd ms" for b in backends)
-          + (" | torch/cpu fwd+bwd |" if "cpu" in backends and "torch" in backends else " |"))
+          + (" | torch/cpu fwd+bwd | torch/cpu fwd+bwd CPU time |" if "cpu" in backends and "torch" in backends
+             else " |"))
     print("|---|---|" + "---|---|" * len(backends)
-          + ("---|" if "cpu" in backends and "torch" in backends else ""))
+          + ("---|---|" if "cpu" in backends and "torch" in backends else ""))
     cells = {(b, w, h, n): (f, fb) for b, w, h, n, f, fb in rows}
     for (w, h) in sizes:
         for n in counts:
@@ -165,6 +179,8 @@ def main(args) -> int:
             if "cpu" in backends and "torch" in backends:
                 c_fb, t_fb = cells[("cpu", w, h, n)][1], cells[("torch", w, h, n)][1]
                 line += f" {t_fb / c_fb:.1f}x |" if c_fb and t_fb else " - |"
+                c_c, t_c = cpu_ms.get(("cpu", w, h, n)), cpu_ms.get(("torch", w, h, n))
+                line += f" {t_c / c_c:.1f}x |" if c_c and t_c else " - |"
             print(line)
     print()
     print("peak RSS after each backend (MB, cumulative): "

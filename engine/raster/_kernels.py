@@ -338,6 +338,218 @@ def _fwd_tile(tile, packed, spans, offsets, height, width, tile_size,
             last_i[c, py, px] = last[p]
 
 
+# ----------------------------------------------------------- 8x8 tiles (the default size)
+# The same compositing as ``_fwd_tile`` / ``_bwd_tile``, specialised to 8x8 tiles: a tile's
+# per-pixel state lives in ONE scratch array at compile-time offsets, and each reachable
+# tile row is a fixed 8-lane loop (one AVX2 vector). With ten separate scratch arrays and a
+# variable-length pixel loop LLVM emitted runtime alias checks and a loop prologue per
+# Gaussian and tile, which cost more than the arithmetic: measured 1.47x (forward) and
+# 1.36x (backward) less CPU time at 320x240 / 50k Gaussians. Results equal the generic
+# kernels' to float32 rounding (FMA contraction), which tests/test_raster.py checks.
+TS = 8
+TS2 = 64
+# forward state slots (float32, TS2 each): pixel x, y, transmittance, open, last index, 4 features
+SPX, SPY, ST, SACT, SLAST, SA0, SA1, SA2, SA3 = 0, 64, 128, 192, 256, 320, 384, 448, 512
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp"})
+def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, out_feat, out_alpha,
+               final_t, last_i):
+    c = tile // n_tiles
+    t = tile - c * n_tiles
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    s = offsets[tile]
+    n = offsets[tile + 1] - s
+    y0 = ty * TS
+    x0 = tx * TS
+    st = np.zeros(9 * TS2, np.float32)  # last index as float32: exact below 2**24 Gaussians per tile
+    for p in range(TS2):
+        py = y0 + p // TS
+        px = x0 + p % TS
+        st[SPX + p] = _F(px) + FHALF
+        st[SPY + p] = _F(py) + FHALF
+        st[ST + p] = F1
+        st[SACT + p] = F1 if (py < height and px < width) else F0
+        st[SLAST + p] = _F(-1.0)
+    for i in range(n):
+        k = s + i
+        gx = packed[k, 0]
+        gy = packed[k, 1]
+        ca = packed[k, 2]
+        cb = packed[k, 3]
+        cc = packed[k, 4]
+        op = packed[k, 5]
+        f0 = packed[k, 6]
+        f1 = packed[k, 7]
+        f2 = packed[k, 8]
+        f3 = packed[k, 9]
+        fi = _F(i)
+        sp = spans[k]
+        r0 = sp & 255
+        r1 = sp >> 8
+        for r in range(r0, r1):
+            base = r * TS
+            for j in range(TS):
+                p = base + j
+                dx = gx - st[SPX + p]
+                dy = gy - st[SPY + p]
+                power = FHALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                q = min(max(power, F0), F_QMAX)
+                alpha = min(amax, op * exp_neg(q))
+                tp = st[ST + p]
+                nt = tp * (F1 - alpha)
+                ok = (power >= F0) and (alpha >= F_THR) and (st[SACT + p] != F0)
+                use = ok and (nt > F_STOP)
+                w = alpha * tp if use else F0
+                st[SA0 + p] += w * f0
+                st[SA1 + p] += w * f1
+                st[SA2 + p] += w * f2
+                st[SA3 + p] += w * f3
+                st[ST + p] = nt if use else tp
+                st[SLAST + p] = fi if use else st[SLAST + p]
+                st[SACT + p] = F0 if (ok and not use) else st[SACT + p]
+        if (i & 3) == 3:  # any pixel still open? (checked every 4th Gaussian: cheaper)
+            any_act = False
+            for p in range(TS2):
+                if st[SACT + p] != F0:
+                    any_act = True
+                    break
+            if not any_act:
+                break
+    for p in range(TS2):
+        py = y0 + p // TS
+        px = x0 + p % TS
+        if py < height and px < width:
+            out_feat[c, py, px, 0] = st[SA0 + p]
+            out_feat[c, py, px, 1] = st[SA1 + p]
+            out_feat[c, py, px, 2] = st[SA2 + p]
+            out_feat[c, py, px, 3] = st[SA3 + p]
+            out_alpha[c, py, px] = F1 - st[ST + p]
+            final_t[c, py, px] = st[ST + p]
+            last_i[c, py, px] = np.int32(st[SLAST + p])
+
+
+# backward state slots: pixel x, y, transmittance, final transmittance, last index, dL/dalpha,
+# dL/dfeature 0..3, features composited behind (b0..b3)
+BPX, BPY, BT, BTF, BLAST, BVA, BV0, BV1, BV2, BV3, BB0, BB1, BB2, BB3 = [j * TS2 for j in range(14)]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp", "reassoc"})
+def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, final_t, last_i, v_feat,
+               v_alpha, v_isect):
+    c = tile // n_tiles
+    t = tile - c * n_tiles
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    s = offsets[tile]
+    n = offsets[tile + 1] - s
+    if n == 0:
+        return
+    y0 = ty * TS
+    x0 = tx * TS
+    st = np.zeros(14 * TS2, np.float32)
+    i_max = -1
+    for p in range(TS2):
+        py = y0 + p // TS
+        px = x0 + p % TS
+        st[BPX + p] = _F(px) + FHALF
+        st[BPY + p] = _F(py) + FHALF
+        st[BT + p] = F1
+        st[BTF + p] = F1
+        st[BLAST + p] = _F(-1.0)
+        if py < height and px < width:
+            tfv = final_t[c, py, px]
+            st[BT + p] = tfv
+            st[BTF + p] = tfv
+            lp = last_i[c, py, px]
+            st[BLAST + p] = _F(lp)
+            i_max = max(i_max, lp)
+            st[BVA + p] = v_alpha[c, py, px]
+            st[BV0 + p] = v_feat[c, py, px, 0]
+            st[BV1 + p] = v_feat[c, py, px, 1]
+            st[BV2 + p] = v_feat[c, py, px, 2]
+            st[BV3 + p] = v_feat[c, py, px, 3]
+    for i in range(i_max, -1, -1):
+        k = s + i
+        gx = packed[k, 0]
+        gy = packed[k, 1]
+        ca = packed[k, 2]
+        cb = packed[k, 3]
+        cc = packed[k, 4]
+        op = packed[k, 5]
+        f0 = packed[k, 6]
+        f1 = packed[k, 7]
+        f2 = packed[k, 8]
+        f3 = packed[k, 9]
+        fi = _F(i)
+        g_x = F0
+        g_y = F0
+        g_a = F0
+        g_b = F0
+        g_c = F0
+        g_o = F0
+        g_f0 = F0
+        g_f1 = F0
+        g_f2 = F0
+        g_f3 = F0
+        sp = spans[k]
+        r0 = sp & 255
+        r1 = sp >> 8
+        for r in range(r0, r1):
+            base = r * TS
+            for j in range(TS):
+                p = base + j
+                dx = gx - st[BPX + p]
+                dy = gy - st[BPY + p]
+                power = FHALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                q = min(max(power, F0), F_QMAX)
+                vis = exp_neg(q)
+                raw = op * vis
+                alpha = min(amax, raw)
+                ok = (power >= F0) and (alpha >= F_THR) and (fi <= st[BLAST + p])
+                ra = F1 / (F1 - alpha)
+                tp = st[BT + p]
+                tn = tp * ra if ok else tp
+                fac = alpha * tn if ok else F0
+                v0 = st[BV0 + p]
+                v1 = st[BV1 + p]
+                v2 = st[BV2 + p]
+                v3 = st[BV3 + p]
+                b0 = st[BB0 + p]
+                b1 = st[BB1 + p]
+                b2 = st[BB2 + p]
+                b3 = st[BB3 + p]
+                v_a = (f0 * tn - b0 * ra) * v0 + (f1 * tn - b1 * ra) * v1 \
+                    + (f2 * tn - b2 * ra) * v2 + (f3 * tn - b3 * ra) * v3 \
+                    + st[BTF + p] * ra * st[BVA + p]
+                g_f0 += fac * v0
+                g_f1 += fac * v1
+                g_f2 += fac * v2
+                g_f3 += fac * v3
+                st[BB0 + p] = b0 + fac * f0
+                st[BB1 + p] = b1 + fac * f1
+                st[BB2 + p] = b2 + fac * f2
+                st[BB3 + p] = b3 + fac * f3
+                st[BT + p] = tn
+                v_sigma = -raw * v_a if (ok and raw <= amax) else F0
+                g_x += v_sigma * (ca * dx + cb * dy)
+                g_y += v_sigma * (cb * dx + cc * dy)
+                g_a += v_sigma * dx * dx
+                g_b += v_sigma * dx * dy
+                g_c += v_sigma * dy * dy
+                g_o += v_sigma
+        v_isect[k, 0] = g_x
+        v_isect[k, 1] = g_y
+        v_isect[k, 2] = FHALF * g_a
+        v_isect[k, 3] = g_b
+        v_isect[k, 4] = FHALF * g_c
+        v_isect[k, 5] = -g_o / op if op > F0 else F0
+        v_isect[k, 6] = g_f0
+        v_isect[k, 7] = g_f1
+        v_isect[k, 8] = g_f2
+        v_isect[k, 9] = g_f3
+
+
 @njit(parallel=True, cache=True)
 def rasterize_fwd(packed, spans, offsets, n_cams, height, width, tile_size,
                   tiles_x, tiles_y, alpha_max, out_feat, out_alpha, final_t, last_i):
@@ -349,9 +561,14 @@ def rasterize_fwd(packed, spans, offsets, n_cams, height, width, tile_size,
     -1 if none)."""
     n_tiles = tiles_x * tiles_y
     amax = _F(alpha_max)
-    for tile in prange(n_cams * n_tiles):
-        _fwd_tile(tile, packed, spans, offsets, height, width, tile_size,
-                  tiles_x, n_tiles, amax, out_feat, out_alpha, final_t, last_i)
+    if tile_size == TS:
+        for tile in prange(n_cams * n_tiles):
+            _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax,
+                       out_feat, out_alpha, final_t, last_i)
+    else:
+        for tile in prange(n_cams * n_tiles):
+            _fwd_tile(tile, packed, spans, offsets, height, width, tile_size,
+                      tiles_x, n_tiles, amax, out_feat, out_alpha, final_t, last_i)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "nsz"})
@@ -476,9 +693,14 @@ def rasterize_bwd(packed, spans, offsets, n_cams, height, width, tile_size,
     per-intersection gradients w.r.t. (mean x, mean y, conic a, b, c, opacity, feats 0..3)."""
     n_tiles = tiles_x * tiles_y
     amax = _F(alpha_max)
-    for tile in prange(n_cams * n_tiles):
-        _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
-                  tiles_x, n_tiles, amax, final_t, last_i, v_feat, v_alpha, v_isect)
+    if tile_size == TS:
+        for tile in prange(n_cams * n_tiles):
+            _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax,
+                       final_t, last_i, v_feat, v_alpha, v_isect)
+    else:
+        for tile in prange(n_cams * n_tiles):
+            _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
+                      tiles_x, n_tiles, amax, final_t, last_i, v_feat, v_alpha, v_isect)
 
 
 @njit(parallel=True, cache=True)
@@ -544,6 +766,25 @@ def _quat_rot(quats, n, R):
     return w, x, y, z, inv
 
 
+@njit(cache=True, nogil=True)
+def _cam_table(viewmats, Ks, width, height):
+    """[C, 8] float64: each camera's ``_cam_setup`` computed once per call rather than once
+    per Gaussian and camera (four divisions each)."""
+    C = viewmats.shape[0]
+    out = np.empty((C, 8), np.float64)
+    for c in range(C):
+        v = _cam_setup(viewmats, Ks, c, width, height)
+        for j in range(8):
+            out[c, j] = v[j]
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cam_row(cams, c):
+    return (cams[c, 0], cams[c, 1], cams[c, 2], cams[c, 3], cams[c, 4], cams[c, 5], cams[c, 6],
+            cams[c, 7])
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _cam_setup(viewmats, Ks, c, width, height):
     fx = np.float64(Ks[c, 0, 0])
@@ -563,16 +804,17 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
     -> out_m2d [C,N,2], out_conic [C,N,3], out_z [C,N], out_radii [C,N,2] int32 (0 = culled).
     Depth-culled Gaussians get zero means2d / conics."""
     N = means.shape[0]
+    cams = _cam_table(viewmats, Ks, width, height)
     for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
         Rq = np.empty((3, 3), np.float64)
         M = np.empty((3, 3), np.float64)
         for n in range(chunk * PROJ_CHUNK, min(N, (chunk + 1) * PROJ_CHUNK)):
-            _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height, near,
+            _project_one_fwd(n, means, quats, scales, opac, viewmats, cams, width, height, near,
                              far, eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height, near, far,
+def _project_one_fwd(n, means, quats, scales, opac, viewmats, cams, width, height, near, far,
                      eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M):
     C = viewmats.shape[0]
     if True:
@@ -585,7 +827,7 @@ def _project_one_fwd(n, means, quats, scales, opac, viewmats, Ks, width, height,
         mz = np.float64(means[n, 2])
         op = np.float64(opac[n])
         for c in range(C):
-            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_setup(viewmats, Ks, c, width, height)
+            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_row(cams, c)
             px = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
             py = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
             pz = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]
@@ -645,6 +887,7 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
     """Gradients of project_fwd's means2d / conics / z w.r.t. means, quats, scales
     (v_means [N,3], v_quats [N,4], v_scales [N,3] are written, not accumulated)."""
     N = means.shape[0]
+    cams = _cam_table(viewmats, Ks, width, height)
     for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
         Rq = np.empty((3, 3), np.float64)
         M = np.empty((3, 3), np.float64)
@@ -655,13 +898,13 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
         T0 = np.empty(3, np.float64)
         T1 = np.empty(3, np.float64)
         for n in range(chunk * PROJ_CHUNK, min(N, (chunk + 1) * PROJ_CHUNK)):
-            _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near, far,
+            _project_one_bwd(n, means, quats, scales, viewmats, cams, width, height, near, far,
                              eps2d, v_m2d, v_conic, v_z, v_means, v_quats, v_scales,
                              Rq, M, gM, G, a, b, T0, T1)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
+def _project_one_bwd(n, means, quats, scales, viewmats, cams, width, height, near, far, eps2d,
                      v_m2d, v_conic, v_z, v_means, v_quats, v_scales, Rq, M, gM, G, a, b, T0, T1):
     C = viewmats.shape[0]
     if True:
@@ -681,7 +924,7 @@ def _project_one_bwd(n, means, quats, scales, viewmats, Ks, width, height, near,
             gmx += viewmats[c, 2, 0] * gz
             gmy += viewmats[c, 2, 1] * gz
             gmz += viewmats[c, 2, 2] * gz
-            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_setup(viewmats, Ks, c, width, height)
+            fx, fy, cx, cy, ulo, uhi, vlo, vhi = _cam_row(cams, c)
             px = viewmats[c, 0, 0] * mx + viewmats[c, 0, 1] * my + viewmats[c, 0, 2] * mz + viewmats[c, 0, 3]
             py = viewmats[c, 1, 0] * mx + viewmats[c, 1, 1] * my + viewmats[c, 1, 2] * mz + viewmats[c, 1, 3]
             pz = viewmats[c, 2, 0] * mx + viewmats[c, 2, 1] * my + viewmats[c, 2, 2] * mz + viewmats[c, 2, 3]

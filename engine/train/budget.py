@@ -2,9 +2,12 @@
 
 The step count is chosen up front from the measured cost of a few throw-away steps on a
 copy of the model (:func:`measure_step_seconds`, :func:`steps_for_budget`), then
-re-estimated once from the rate of the real steps after ~5% of the run
+re-estimated from the rate of the real steps after ~5% of the run
 (:func:`reestimate_at`, :func:`reestimate_steps`), while the run is still in the static
-stage so that every schedule (a fraction of the total) stays consistent.
+stage so that every schedule (a fraction of the total) stays consistent, and again every
+10% of the deformation stage from that stage's own rate (:func:`reestimate_deform_steps`).
+Kernel compilation and first imports run before the budget's clock starts
+(:func:`warm_up_runtime`).
 """
 from __future__ import annotations
 
@@ -13,10 +16,13 @@ import math
 import time
 
 import numpy as np
+import torch
 
+from ..raster import warmup as raster_warmup
 from .presets import TrainConfig
 
-__all__ = ["REESTIMATE_FRACTION", "measure_step_seconds", "reestimate_at", "reestimate_steps", "steps_for_budget"]
+__all__ = ["DEFORM_REESTIMATE_EVERY", "END_RESERVE_S", "REESTIMATE_FRACTION", "measure_step_seconds", "reestimate_at",
+           "reestimate_deform_steps", "reestimate_steps", "steps_for_budget", "warm_up_runtime"]
 
 
 def measure_step_seconds(trainer, n_static: int = 4, n_deform: int = 4) -> tuple[float, float]:
@@ -84,3 +90,49 @@ def reestimate_steps(trainer, done: int, step_seconds: float, probe: dict, loop_
         rec["clamped"] = True
     rec["total_steps"] = int(new)
     return rec
+
+
+DEFORM_REESTIMATE_EVERY = 0.1  # in the deformation stage: re-estimate after every this share of the total
+END_RESERVE_S = 0.15  # the final checkpoint and run.json after the last step (~0.1 s on the demo)
+
+
+def reestimate_deform_steps(trainer, done: int, step_seconds: float, remaining_s: float) -> dict:
+    """In the deformation stage: the total that ends the run at its budget, from the
+    measured seconds per step of the latest deformation steps.
+
+    One up-front estimate cannot know how the step cost grows with densification and the
+    curriculum (the probe's fixed 1.5x growth made runs end 17% early, issue 13), so the
+    deformation stage re-plans from its own recent rate every ``DEFORM_REESTIMATE_EVERY``
+    of the run; a rising cost is caught by the next re-estimate, and the budget's hard stop
+    bounds the last one. The new total keeps the schedule's stage (``static_steps <= done``)
+    and lets at least the next step run. Returns the record for run.json."""
+    cfg = trainer.cfg
+    old = trainer.total_steps
+    new = done + max(1, int(max(0.0, remaining_s) / max(step_seconds, 1e-6)))
+    rec = {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
+           "total_steps": int(new)}
+    if cfg.static_fraction > 0:
+        cap = int(math.floor((done + 0.5) / cfg.static_fraction)) + 1
+        while int(round(cfg.static_fraction * cap)) > done:
+            cap -= 1
+        if new > cap:
+            rec["total_steps"] = int(max(cap, done + 1))
+            rec["clamped"] = True
+    rec["previous_total_steps"] = int(old)
+    return rec
+
+
+def warm_up_runtime(device) -> float:
+    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the rasterizer's
+    numba kernels that every training step calls, and import what torch imports on
+    its first optimizer (torch._dynamo: 2-5 s), so that none of it is charged to a
+    ``--seconds`` budget (issue 13: a 60 s first Reconstruct in Blender got 20 steps).
+    Returns the seconds taken (run.json ``warmup_seconds``). (The PNG row decoder's kernel is
+    not warmed: its numba cache is keyed by file, not import name, so inside Blender a
+    cache written by ``python -m engine`` cannot be loaded (the same ModuleNotFoundError the
+    rasterizer's per-import-name cache locator avoids): it stays lazy, as before.)"""
+    t0 = time.perf_counter()
+    if torch.device(device).type == "cpu":
+        raster_warmup("cpu")
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
+    return time.perf_counter() - t0

@@ -1,5 +1,6 @@
-"""Early stop: end a run when the PSNR on a few held-out frames stops improving
-(the ``early_stop`` switch of :class:`engine.train.presets.TrainConfig`)."""
+"""Early stop: end a run when the PSNR on a few train frames held back from training stops
+improving (the ``early_stop`` switch of :class:`engine.train.presets.TrainConfig`); never
+the eval frames, which are the test views every reported metric is computed on."""
 from __future__ import annotations
 
 import math
@@ -11,26 +12,55 @@ import torch
 from ..evaluate.metrics import psnr_from_mse
 from ..scene.model import Model4D, view_tensors
 
-__all__ = ["EarlyStop"]
+__all__ = ["EarlyStop", "hold_back_frames"]
+
+
+def hold_back_frames(frames: list, n: int) -> tuple[list, list]:
+    """(kept, held): up to ``n`` train frames held back from training as the early-stopping
+    proxy. Only an instant that two or more train cameras see gives up one frame (the other
+    cameras still train that instant, so no motion goes unseen and the proxy measures a
+    view no camera trained on at that instant); the first instant is spared when another
+    one is eligible (the static stage fits the canonical scene to it). The chosen instants
+    are spread evenly over the eligible ones and take the cameras in turn."""
+    by_t: dict[float, list] = {}
+    for f in frames:
+        by_t.setdefault(round(float(f.time), 9), []).append(f)
+    multi = sorted(t for t, fs in by_t.items() if len({f.camera for f in fs}) >= 2)
+    if len(multi) > 1:
+        multi = multi[1:]
+    if n <= 0 or not multi:
+        return list(frames), []
+    idx = sorted(set(np.linspace(0, len(multi) - 1, min(int(n), len(multi))).round().astype(int).tolist()))
+    held = []
+    for j, i in enumerate(idx):
+        fs = sorted(by_t[multi[i]], key=lambda f: str(f.camera))
+        held.append(fs[j % len(fs)])
+    ids = {id(f) for f in held}
+    return [f for f in frames if id(f) not in ids], held
 
 
 class EarlyStop:
-    """Stop when the PSNR on a few held-out frames (the *proxy*) stops improving.
+    """Stop when the PSNR on a few held-back train frames (the *proxy*) stops improving.
 
-    The proxy is ``early_stop_proxy_frames`` eval frames of the capture, evenly spread over
-    them (sorted by camera and time); a capture without eval frames falls back to as many
-    train frames (``source == "train"``, noted in run.json). It is scored every
+    The proxy is ``early_stop_proxy_frames`` train frames that the trainer holds back from
+    training (:func:`hold_back_frames`: one camera's frame at instants that another train
+    camera also sees), never the capture's eval frames, which are the test views every
+    reported metric is computed on (``source == "held_back_train"``, named in run.json's
+    ``early_stop_proxy``). A capture with no such instant (a single train camera) has no
+    proxy: early stopping is off and run.json says why. The proxy is scored every
     ``early_stop_every_fraction`` of the steps (its cost counts in the run's wall time);
     training stops after ``early_stop_patience`` evaluations without a gain of
     ``early_stop_min_delta`` dB, once the deformation stage has run for
     ``early_stop_min_deform_fraction`` of its steps (before that only the best is tracked).
     """
 
-    def __init__(self, frames: list[dict], names: list[str], source: str, *, patience: int = 3,
+    SOURCE = "held_back_train"
+
+    def __init__(self, frames: list[dict], names: list[str], source: str = SOURCE, *, patience: int = 3,
                  min_delta: float = 0.05, every_fraction: float = 0.05, min_deform_fraction: float = 0.25):
         self.frames = frames          # view tensors with "image" [1,H,W,3]
         self.names = names
-        self.source = source          # "eval" | "train"
+        self.source = source
         self.patience = max(1, int(patience))
         self.min_delta = float(min_delta)
         self.every_fraction = float(every_fraction)
@@ -43,29 +73,19 @@ class EarlyStop:
         self._bad = 0
 
     @classmethod
-    def for_trainer(cls, trainer) -> "EarlyStop":
+    def for_trainer(cls, trainer) -> "EarlyStop | None":
+        """The proxy of ``trainer.held_back`` (None when nothing could be held back)."""
         cfg, cap = trainer.cfg, trainer.capture
-        n = max(1, int(cfg.early_stop_proxy_frames))
-        evals = sorted(getattr(cap, "eval_frames", None) or [], key=lambda f: (f.camera, f.time))
         frames, names = [], []
-        if evals:
-            source = "eval"
-            idx = np.linspace(0, len(evals) - 1, min(n, len(evals))).round().astype(int)
-            for i in sorted(set(idx.tolist())):
-                f = evals[i]
-                vt = view_tensors(cap.view(f), trainer.device)
-                img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
-                vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(trainer.device)[None]
-                frames.append(vt)
-                names.append(str(f.path))
-        else:
-            source = "train"
-            order = sorted(range(len(trainer.items)), key=lambda i: (trainer.items[i]["time"], i))
-            idx = np.linspace(0, len(order) - 1, min(n, len(order))).round().astype(int)
-            for i in sorted(set(idx.tolist())):
-                frames.append(trainer.items[order[i]])
-                names.append(f"train:{trainer.items[order[i]]['camera']}@{trainer.items[order[i]]['time']:.6f}")
-        return cls(frames, names, source, patience=cfg.early_stop_patience, min_delta=cfg.early_stop_min_delta,
+        for f in trainer.held_back:
+            vt = view_tensors(cap.view(f), trainer.device)
+            img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
+            vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(trainer.device)[None]
+            frames.append(vt)
+            names.append(f"train:{f.camera}@{float(f.time):.6f}")
+        if not frames:
+            return None
+        return cls(frames, names, cls.SOURCE, patience=cfg.early_stop_patience, min_delta=cfg.early_stop_min_delta,
                    every_fraction=cfg.early_stop_every_fraction,
                    min_deform_fraction=cfg.early_stop_min_deform_fraction)
 

@@ -23,7 +23,16 @@ from ..io.capture import load_capture
 from ..io.checkpoint import CHECKPOINT, load_checkpoint, read_run_json, save_checkpoint, update_run_json
 from ..scene.model import default_device
 from .baselines import with_baseline
-from .budget import measure_step_seconds, reestimate_at, reestimate_steps, steps_for_budget
+from .budget import (
+    DEFORM_REESTIMATE_EVERY,
+    END_RESERVE_S,
+    measure_step_seconds,
+    reestimate_at,
+    reestimate_deform_steps,
+    reestimate_steps,
+    steps_for_budget,
+    warm_up_runtime,
+)
 from .presets import TrainConfig, get_preset
 from .trainer import LOSS_FACTORIES, LossFactory, Trainer, capture_path
 
@@ -62,15 +71,16 @@ def train(capture, out_dir, *, preset: str = "fast", seconds: float | None = Non
         # machine is idle and, with OpenMP spin-waits, costs 10x+ when the cores are shared.
         torch.set_num_threads(1)
     try:
+        warm_s = warm_up_runtime(dev)  # before the budget's clock starts
         return _train(capture, out_dir, preset=preset, seconds=seconds, rgb_only=rgb_only, resume=resume, dev=dev,
                       seed=seed, progress=progress, cancel=cancel, overrides=overrides,
-                      loss_factories=loss_factories)
+                      loss_factories=loss_factories, warmup_seconds=warm_s)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, progress, cancel, overrides,
-           loss_factories) -> dict:
+           loss_factories, warmup_seconds: float = 0.0) -> dict:
     t_start = time.perf_counter()
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -111,17 +121,19 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     skip_notes = {}
     if trainer.early_stop is not None:
         es = trainer.early_stop
-        skip_notes["early_stop_proxy"] = {"source": es.source, "frames": list(es.names)}
-        if es.source == "train":
-            skip_notes["early_stop_proxy"]["note"] = ("the capture has no eval frames: the proxy is train frames "
-                                                      "(it measures fit, not generalisation)")
+        skip_notes["early_stop_proxy"] = {"source": es.source, "frames": list(es.names),
+                                          "note": "train frames held back from training; eval frames are never scored"}
+    elif cfg.early_stop:
+        skip_notes["early_stop_proxy"] = {"source": None, "frames": [],
+                                          "note": "early stopping off: no instant is seen by two train cameras, so "
+                                                  "no train frame can be held back as the proxy"}
 
     run_info = {
         "capture": cap_path, "preset": preset, "config": cfg.to_dict(), "overrides": overrides or {},
         "seed": seed, "rgb_only": rgb_only, "device": str(dev), "status": "running", "step": start_step,
         "total_steps": total, "train_seconds": prior_seconds, "created": _now(), "time_range": list(trainer.time_range),
         "init": trainer.init_info, "seconds_budget": seconds, "resumed_from": start_step if resumed else None,
-        "host": platform.node(), **skip_notes,
+        "host": platform.node(), "warmup_seconds": round(warmup_seconds, 3), **skip_notes,
     }
     if budget_estimates is not None:
         run_info["budget_estimates"] = budget_estimates
@@ -149,6 +161,10 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     step = start_step
     t_first = None  # after the first step of this call (the re-estimate's rate excludes it)
     reestimate_step = reestimate_at(total) if budget_estimates is not None else None
+    deform_mark = None  # (step, time) where the current deformation-stage rate window starts
+    next_deform_check = None
+    if budget_estimates is not None:
+        budget_estimates["deform"] = []
     out = {"loss": float("nan"), "psnr": float("nan")}
     try:
         while step < total and stopped_early is None:
@@ -174,6 +190,21 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                     if early is not None:
                         early._next = min(early._next, step + early.every(total))
                 update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
+            if budget_estimates is not None and trainer.stage_of(step - 1) == "deform":
+                if deform_mark is None:  # the first deformation step is done (it sets up the field: not timed)
+                    deform_mark = (step, now)
+                    next_deform_check = step + max(5, int(0.5 * DEFORM_REESTIMATE_EVERY * total))
+                elif step >= next_deform_check and step < total:
+                    rate = (now - deform_mark[1]) / max(1, step - deform_mark[0])
+                    rec = reestimate_deform_steps(trainer, step, rate, budget_end - now - END_RESERVE_S)
+                    budget_estimates["deform"].append(rec)
+                    if rec["total_steps"] != total:
+                        total = trainer.total_steps = rec["total_steps"]
+                        if early is not None:
+                            early._next = min(early._next, step + early.every(total))
+                    deform_mark = (step, now)
+                    next_deform_check = step + max(5, int(DEFORM_REESTIMATE_EVERY * total))
+                    update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
             if progress is not None:
                 el = now - loop_t0
                 rate = el / max(1, step - start_step)

@@ -44,7 +44,7 @@ from ..scene.deformation import make_field
 from ..scene.gaussians import GaussianModel
 from ..scene.model import Model4D, near_plane_for_extent, view_tensors
 from .culling import FrustumCuller
-from .early_stop import EarlyStop
+from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
 from .losses import LossTerm, StepContext, default_loss_terms
 from .presets import TrainConfig
@@ -108,6 +108,11 @@ class Trainer:
         frames = train_frames(capture)
         if not frames:
             raise RunError(capture_path(capture) or "capture", "the capture has no train RGB frames")
+        # early stopping scores frames held back from training, never the eval frames that
+        # every reported metric is computed on (issue 13)
+        self.held_back: list = []
+        if cfg.early_stop:
+            frames, self.held_back = hold_back_frames(frames, cfg.early_stop_proxy_frames)
         self.items = []
         for i, f in enumerate(frames):
             vt = view_tensors(capture.view(f), self.device)

@@ -1,0 +1,39 @@
+"""bench-step's profiler: every part of a step is charged, the parts add up to the step,
+and the patched entry points are restored afterwards."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.raster import cpu as raster_cpu
+from engine.scene import model as scene_model
+from engine.scene.deformation import DeformationField
+from tools import bench_step
+from tools.synthetic import write_synthetic_capture
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    return write_synthetic_capture(tmp_path_factory.mktemp("bs") / "cap", width=32, height=24, n_rgb=3,
+                                   eval_fps=60.0, with_points=True)
+
+
+def test_step_profile_charges_every_part_and_restores_the_patches(capture):
+    before = (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward)
+    prof, counts = bench_step.profile_runs(capture, 12, overrides={"init": "ply", "static_fraction": 0.25},
+                                           spike=False)
+    assert (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward) == before
+    static, deform = prof.table("static"), prof.table("rgb_deform")
+    assert static["steps"] == 2 and deform["steps"] == 8  # 12 steps less the two set-up steps
+    for tab in (static, deform):
+        ms = tab["ms"]
+        assert ms["raster_fwd"] > 0 and ms["raster_bwd"] > 0 and ms["losses"] > 0 and ms["optimizer"] > 0
+        # exclusive times: the parts add up to the step (other is the remainder, never negative)
+        assert sum(ms.values()) == pytest.approx(tab["step_ms"], rel=1e-6)
+        assert ms["other"] >= 0
+    assert static["ms"]["field_fwd"] == 0 and static["ms"]["field_bwd"] == 0  # no field in the static stage
+    assert deform["ms"]["field_fwd"] > 0 and deform["ms"]["field_bwd"] > 0
+    r = bench_step.ratios(prof)
+    assert np.isfinite(r["rgb_step_over_raster"]) and r["rgb_step_over_raster"] > 1.0
+    md = bench_step.markdown(prof)
+    assert "| field_bwd |" in md and "guided_deform" not in md

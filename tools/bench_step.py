@@ -1,0 +1,277 @@
+"""``python -m tools bench-step``: where a training step goes, per stage (issue 13).
+
+Trains a short real schedule (``--steps``, the preset's own fractions: static stage,
+densification, curriculum) twice on a capture -- RGB only, then with the spike branch --
+and charges each step's *exclusive* wall time to its parts (:class:`StepProfiler`):
+
+* ``raster_fwd``: ``engine.raster.rasterization`` as ``Model4D.render`` calls it (projection,
+  SH, binning, compositing);
+* ``raster_bwd``: the numba autograd functions' backward (compositing, projection, SH);
+* ``field_fwd``: ``DeformationField.forward`` (HexPlane sampling + decoder), fine branch excluded;
+* ``fine_fwd``: the spike branch's fine encoder / fine deformation forward;
+* ``field_bwd``: from the gradient reaching the field's outputs until every field parameter
+  has its gradient (autograd hooks; the fine branch's backward runs inside it);
+* ``losses``: the loss terms' forward (``LossTerm.fn``; the spike branch's targets included);
+* ``optimizer``: every ``Adam.step``;
+* ``densify``: densification statistics, densify-and-prune, opacity reset;
+* ``other``: the rest of the step (the losses' and glue's backward, Python).
+
+Stages: ``static`` (RGB run), ``rgb_deform`` and ``guided_deform`` (the deformation stage
+of each run); the first step of each stage (set-up) is not timed. Prints a markdown table
+of per-step ms and shares and the issue's two ratios: RGB deformation step / rasterizer
+forward+backward, guided step / RGB step. CPU wall time: on a shared machine the shares
+are steadier than the milliseconds (the load average is printed).
+"""
+from __future__ import annotations
+
+import os
+import time
+
+import torch
+
+from engine.cli.train import parse_overrides
+from engine.io.capture import load_capture
+from engine.raster import cpu as raster_cpu
+from engine.scene import fine_deformation as fd
+from engine.scene import model as scene_model
+from engine.scene.deformation import DeformationField
+from engine.scene.gaussians import GaussianModel
+from engine.train.budget import warm_up_runtime
+from engine.train.presets import get_preset
+from engine.train.trainer import Trainer
+
+HELP = "profile a training step per stage: rasterizer, deformation field, fine branch, losses, optimizer"
+
+CATEGORIES = ("raster_fwd", "raster_bwd", "field_fwd", "fine_fwd", "field_bwd", "losses", "optimizer",
+              "densify", "other")
+
+
+class StepProfiler:
+    def __init__(self):
+        self.by_label: dict[str, dict] = {}
+        self.totals = {c: 0.0 for c in CATEGORIES}  # the accumulator in use (scratch outside run_step)
+        self._bwd_charged = 0.0
+        self._in_window = 0.0
+        self._stack: list[list] = []  # [category, start, child seconds]
+        self._patches: list[tuple] = []
+        self._field_bwd_start = None
+
+    def _acc(self, label):
+        if label not in self.by_label:
+            self.by_label[label] = {"totals": {c: 0.0 for c in CATEGORIES}, "steps": 0, "seconds": 0.0}
+        return self.by_label[label]
+
+    # ---- exclusive timers ---------------------------------------------------------------
+    def _enter(self, cat):
+        self._stack.append([cat, time.perf_counter(), 0.0])
+
+    def _exit(self):
+        cat, t0, child = self._stack.pop()
+        dt = time.perf_counter() - t0
+        self.totals[cat] += dt - child
+        if self._field_bwd_start is not None:  # charged already: not the field's backward
+            self._in_window += dt - child
+        if self._stack:
+            self._stack[-1][2] += dt
+        return dt
+
+    def _wrap(self, owner, name, cat, static=False):
+        orig = owner.__dict__[name] if name in owner.__dict__ else getattr(owner, name)
+        fn = orig.__func__ if isinstance(orig, staticmethod) else orig
+        prof = self
+
+        def timed(*a, **k):
+            prof._enter(cat)
+            try:
+                return fn(*a, **k)
+            finally:
+                prof._exit()
+
+        timed.__wrapped__ = fn
+        setattr(owner, name, staticmethod(timed) if (static or isinstance(orig, staticmethod)) else timed)
+        self._patches.append((owner, name, orig))
+
+    # ---- field backward window by autograd hooks -----------------------------------------
+    def _hook_field(self, field, outputs):
+        params = [p for p in field.parameters() if p.requires_grad]
+        tensors = [o for o in _flatten(outputs) if isinstance(o, torch.Tensor) and o.requires_grad]
+        if not params or not tensors:
+            return
+        prof = self
+
+        def started(_g):
+            if prof._field_bwd_start is None:
+                prof._field_bwd_start = time.perf_counter()
+                prof._in_window = 0.0
+
+        def done(_grads):
+            if prof._field_bwd_start is not None:
+                # less what ran meanwhile and is charged elsewhere (the spike branch's second
+                # render's rasterizer backward runs inside this window)
+                dt = time.perf_counter() - prof._field_bwd_start - prof._in_window
+                prof.totals["field_bwd"] += dt
+                prof._bwd_charged += dt
+                prof._field_bwd_start = None
+
+        for t in tensors:
+            t.register_hook(started)
+        torch.autograd.graph.register_multi_grad_hook(params, done, mode="all")
+
+    def __enter__(self):
+
+        self._wrap(scene_model, "rasterization", "raster_fwd")  # Model4D.render's name for it
+        for cls in (raster_cpu._RasterizeToPixels, raster_cpu._Project, raster_cpu._ShCombine):
+            self._wrap(cls, "backward", "raster_bwd", static=True)
+        for cls in (fd.FineDeformation, fd.SpikeTextureEncoder, fd.SpikeFineEncoder):
+            self._wrap(cls, "forward", "fine_fwd")
+        for name in ("add_densification_stats", "densify_and_prune", "reset_opacity"):
+            self._wrap(GaussianModel, name, "densify")
+        for cls in (torch.optim.Adam,):
+            self._wrap(cls, "step", "optimizer")
+
+        orig_forward = DeformationField.forward
+        prof = self
+
+        def field_forward(module, *a, **k):
+            prof._enter("field_fwd")
+            try:
+                out = orig_forward(module, *a, **k)
+            finally:
+                prof._exit()
+            if torch.is_grad_enabled():
+                prof._hook_field(module, out)
+            return out
+
+        DeformationField.forward = field_forward
+        self._patches.append((DeformationField, "forward", orig_forward))
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, orig in reversed(self._patches):
+            setattr(owner, name, orig)
+        self._patches.clear()
+        return False
+
+    # ---- one step ---------------------------------------------------------------------------
+    def run_step(self, trainer, step: int, label: str) -> dict:
+        """One timed ``trainer.step(step)``, charged to ``label`` (e.g. the stage); its loss
+        terms are timed as ``losses``."""
+        acc = self._acc(label)
+        self.totals = acc["totals"]
+        for term in trainer.loss_terms:
+            if not getattr(term.fn, "_bt4d_timed", False):
+                fn = term.fn
+                prof = self
+
+                def timed(ctx, _fn=fn):
+                    prof._enter("losses")
+                    try:
+                        return _fn(ctx)
+                    finally:
+                        prof._exit()
+
+                timed._bt4d_timed = True
+                term.fn = timed
+        self._bwd_charged = 0.0
+        self._field_bwd_start = None
+        self._enter("other")
+        out = trainer.step(step)
+        dt = self._exit()
+        # the field's backward ran inside "other" (autograd, not a patched call): move it
+        self.totals["other"] -= self._bwd_charged
+        acc["steps"] += 1
+        acc["seconds"] += dt
+        self.totals = {c: 0.0 for c in CATEGORIES}  # untimed steps charge nothing
+        return out
+
+    def table(self, label: str) -> dict:
+        """Per-step milliseconds of each category and their shares of the step."""
+        acc = self._acc(label)
+        n = max(1, acc["steps"])
+        ms = {c: 1e3 * v / n for c, v in acc["totals"].items()}
+        step_ms = 1e3 * acc["seconds"] / n
+        return {"steps": acc["steps"], "step_ms": step_ms, "ms": ms,
+                "share": {c: (v / step_ms if step_ms else 0.0) for c, v in ms.items()}}
+
+
+def _flatten(x):
+    if isinstance(x, dict):
+        for v in x.values():
+            yield from _flatten(v)
+    elif isinstance(x, (list, tuple)):
+        for v in x:
+            yield from _flatten(v)
+    else:
+        yield x
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("capture", help="capture folder")
+    parser.add_argument("--steps", type=int, default=60, help="schedule length of each profiled run (default 60)")
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
+
+
+def profile_runs(capture, steps: int, preset: str = "fast", overrides: dict | None = None,
+                 spike: bool = True) -> tuple["StepProfiler", dict]:
+    """Profile an RGB-only run (and, with ``spike``, a guided run) of ``steps`` steps.
+    Returns the profiler (labels static / rgb_deform / guided_deform) and Gaussian counts."""
+    cap = load_capture(capture) if not hasattr(capture, "frames") else capture
+    warm_up_runtime("cpu")
+    prof = StepProfiler()
+    counts = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as engine.train.train does on the CPU
+    try:
+        for rgb_only in ((True, False) if spike else (True,)):
+            cfg = get_preset(preset, {**(overrides or {}), "iterations": int(steps)})
+            tr = Trainer(cap, cfg, device="cpu", rgb_only=rgb_only)
+            tr.init_model()
+            deform = "rgb_deform" if rgb_only else "guided_deform"
+            with prof:
+                for i in range(int(steps)):
+                    stage = tr.stage_of(i)
+                    if i in (0, tr.static_steps) or (stage == "static" and not rgb_only):
+                        tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
+                        continue
+                    prof.run_step(tr, i, "static" if stage == "static" else deform)
+            counts[deform] = tr.model.gaussians.num_gaussians
+    finally:
+        torch.set_num_threads(threads)
+    return prof, counts
+
+
+def ratios(prof: "StepProfiler") -> dict:
+    rgb, guided = prof.table("rgb_deform"), prof.table("guided_deform")
+    raster = rgb["ms"]["raster_fwd"] + rgb["ms"]["raster_bwd"]
+    out = {"rgb_step_over_raster": rgb["step_ms"] / raster if raster else float("nan")}
+    if guided["steps"]:
+        out["guided_step_over_rgb_step"] = guided["step_ms"] / rgb["step_ms"] if rgb["step_ms"] else float("nan")
+    return out
+
+
+def markdown(prof: "StepProfiler") -> str:
+    labels = [lb for lb in ("static", "rgb_deform", "guided_deform") if prof.table(lb)["steps"]]
+    tabs = {lb: prof.table(lb) for lb in labels}
+    steps = " | ".join(f"{tabs[lb]['step_ms']:.1f} ({tabs[lb]['steps']} steps)" for lb in labels)
+    lines = ["| part | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels), f"| step ms | {steps} |"]
+    for c in CATEGORIES:
+        lines.append(f"| {c} | " + " | ".join(f"{tabs[lb]['ms'][c]:.1f} ({100 * tabs[lb]['share'][c]:.0f}%)"
+                                             for lb in labels) + " |")
+    return "\n".join(lines)
+
+
+def main(args) -> int:
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    t0 = time.perf_counter()
+    prof, counts = profile_runs(args.capture, args.steps, args.preset, parse_overrides(args.set))
+    load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(markdown(prof))
+    r = ratios(prof)
+    print()
+    print(f"RGB deformation step / rasterizer fwd+bwd: {r['rgb_step_over_raster']:.2f}x (target <= 1.6x)")
+    if "guided_step_over_rgb_step" in r:
+        print(f"guided step / RGB step: {r['guided_step_over_rgb_step']:.2f}x (target <= 1.6x)")
+    print(f"Gaussians at the end: {counts}; {time.perf_counter() - t0:.0f} s; "
+          f"load average start/end {load0:.1f} / {load1:.1f} (cores: {os.cpu_count()})")
+    return 0
