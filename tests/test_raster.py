@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -448,20 +449,30 @@ def test_numba_projection_matches_torch_projection(dtype):
 
 
 @NEEDS_NUMBA
-def test_numba_cache_is_per_import_name(tmp_path):
+def test_numba_cache_is_per_import_name(tmp_path, monkeypatch):
     """Blender imports the engine as bl_ext.<repo>.bullettime4d.engine, the CLI as engine:
-    their numba caches must not share entries (a cached entry pickles the import name)."""
-    import importlib.util
+    their numba caches must not share entries (a cached entry pickles the import name).
+    Both compiled modules: the rasterizer kernels and the PNG row decoder."""
+    import importlib
 
+    from engine.io import images
     from engine.raster import _kernels
-    spec = importlib.util.spec_from_file_location("bt4d_alias_pkg_kernels", _kernels.__file__)
-    alias = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(alias)
+    pkg = tmp_path / "bt4d_alias_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "engine").symlink_to(Path(_kernels.__file__).resolve().parents[1], target_is_directory=True)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    alias_kernels = importlib.import_module("bt4d_alias_pkg.engine.raster._kernels")
+    alias_images = importlib.import_module("bt4d_alias_pkg.engine.io.images")
     a = _kernels.rasterize_fwd._cache._cache_path
-    b = alias.rasterize_fwd._cache._cache_path
+    b = alias_kernels.rasterize_fwd._cache._cache_path
     assert a != b
     assert a.endswith("numba-engine.raster._kernels")
-    assert b.endswith("numba-bt4d_alias_pkg_kernels")
+    assert b.endswith("numba-bt4d_alias_pkg.engine.raster._kernels")
+    pa = images._unfilter_impl()._cache._cache_path
+    pb = alias_images._unfilter_impl()._cache._cache_path
+    assert pa.endswith("numba-engine.io.images")
+    assert pb.endswith("numba-bt4d_alias_pkg.engine.io.images")
 
 
 def test_warmup_runs_a_tiny_render():

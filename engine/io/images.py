@@ -24,6 +24,7 @@ import numpy as np
 
 from ..colour import linear_to_srgb
 from ..errors import CaptureError
+from ..numba_cache import install_cache_locator
 from .fileio import atomic_path, atomic_write
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -146,6 +147,9 @@ def _unfilter_impl():
         try:
             import numba  # lazy: optional; the plain-Python decoder is the fallback
 
+            # the extension (bl_ext...engine.io.images) and `python -m engine` must not share
+            # cache entries: each pickles its own import name
+            install_cache_locator(__name__)
             try:
                 _UNFILTER = numba.njit(cache=True)(_unfilter_rows)
             except RuntimeError:  # no writable cache location
