@@ -33,6 +33,7 @@ REQUIREMENTS = (
     "trimesh==5.2.0",
     "pytorch-msssim==1.0.0",
     "pillow==13.0.0",
+    "opencv-python-headless==4.11.0.86",  # stereo (engine.geometry.stereo); 4.11 keeps numpy < 2
 )
 
 _added_paths: list[str] = []  # the sys.path entries this add-on appended
