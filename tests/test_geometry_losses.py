@@ -41,8 +41,8 @@ def test_binocular_loss_is_zero_at_the_true_depth_and_trains_a_wrong_one():
     assert depth.grad is not None and depth.grad.abs().sum() > 0
     # a few gradient steps move a wrong depth towards the truth
     d = torch.full((H, W), 2.15, requires_grad=True)
-    opt = torch.optim.Adam([d], lr=0.01)
-    for _ in range(60):
+    opt = torch.optim.Adam([d], lr=0.02)
+    for _ in range(25):
         opt.zero_grad()
         binocular_loss(d, alpha, ia, Ka, Va, ib, Kb, Vb).backward()
         opt.step()
