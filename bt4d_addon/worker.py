@@ -216,7 +216,8 @@ def render_views_job(*, progress, cancel, scene4d, views: list, outputs: list, f
             bg = (0.0, 0.0, 0.0) if file_format == "OPEN_EXR" else background
         else:
             bg = (0.0, 0.0, 0.0)
-        r = scene4d.render([view], background=bg)[0]
+        opaque = file_format != "OPEN_EXR" and not transparent  # no black holes in an opaque frame (issue 14)
+        r = scene4d.render([view], background=bg, fill_holes=opaque)[0]
         rgb, alpha, depth = r["rgb"], r["alpha"], r["depth"]
         if file_format == "OPEN_EXR":
             lin = colour.srgb_to_linear(np.clip(rgb, 0.0, None)).astype(np.float32)

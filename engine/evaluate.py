@@ -8,7 +8,10 @@ returns one JSON-able dict:
   cameras' RGB frame times (what the 30 FPS frames never show);
 * ``psnr_dynamic``: PSNR over motion-mask pixels (GT changes across neighbouring eval frames),
   averaged over frames that have any;
-* ``n_frames``, ``n_interframe``, ``train_seconds``, ``num_gaussians``, ``render_seconds``.
+* ``n_frames``, ``n_interframe``, ``train_seconds``, ``num_gaussians``, ``render_seconds``;
+* ``fill_holes``: frames are rendered as a viewer sees them, uncovered pixels filled from
+  their covered neighbourhood (``Scene4D.render(fill_holes=True)``, issue 14) rather than
+  showing the black training background.
 
 It writes RUN/eval_frames.csv (index, time, camera, interframe, psnr, ssim, psnr_dynamic)
 and RUN/metrics.json.
@@ -39,7 +42,7 @@ def _round(x, nd=4):
 
 
 def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_threshold: float = 0.04,
-             mask_dilate: int = 2) -> dict:
+             mask_dilate: int = 2, fill_holes: bool = True) -> dict:
     from .capture import load_capture
     from .model import load_run
 
@@ -67,7 +70,7 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         gts = [fr.load_rgb() for fr in fs]
         masks = motion_masks(gts, mask_threshold, mask_dilate)
         for fr, gt, mask in zip(fs, gts, masks):
-            pred = scene.render([cap.view(fr)])[0]["rgb"]
+            pred = scene.render([cap.view(fr)], fill_holes=fill_holes)[0]["rgb"]  # what a viewer sees (issue 14)
             p_dyn = psnr(pred, gt, mask) if mask.any() else float("nan")
             rows.append({"time": float(fr.time), "camera": cam, "interframe": is_interframe(fr.time, rgb_times),
                          "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "psnr_dynamic": p_dyn,
@@ -90,6 +93,7 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         "train_seconds": _round(run_info.get("train_seconds"), 2),
         "num_gaussians": scene.num_gaussians,
         "render_seconds": round(render_s, 3),
+        "fill_holes": bool(fill_holes),
         "preset": run_info.get("preset"),
         "step": info.get("step"),
         "run_dir": str(run_dir.resolve()),

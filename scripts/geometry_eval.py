@@ -78,7 +78,7 @@ def observed_mask(view, depth, train):
     return seen.reshape(depth.shape) & np.isfinite(depth)
 
 
-def evaluate_geometry(run, capture=None, all_times: bool = False, save_dir=None) -> dict:
+def evaluate_geometry(run, capture=None, all_times: bool = False, save_dir=None, fill_holes: bool = False) -> dict:
     scene = load_run(run)
     cap = load_capture(capture or scene.info["capture"])
     files = depth_files(cap)
@@ -92,7 +92,7 @@ def evaluate_geometry(run, capture=None, all_times: bool = False, save_dir=None)
         if not all_times and t not in rgb_times:
             continue
         view = cap.view(f)
-        r = scene.render([view])[0]
+        r = scene.render([view], fill_holes=fill_holes)[0]
         gt = f.load_rgb()
         dgt = gt_depth(f, files)
         cover_px = np.isfinite(dgt) if dgt is not None else np.ones(gt.shape[:2], bool)
@@ -126,9 +126,10 @@ def main(argv=None):
     ap.add_argument("capture", nargs="?")
     ap.add_argument("--all-times", action="store_true", help="every eval frame, not only the RGB instants")
     ap.add_argument("--json")
+    ap.add_argument("--fill-holes", action="store_true", help="render with Scene4D.render(fill_holes=True)")
     ap.add_argument("--save-png", help="folder for GT | render | alpha strips at the first RGB instant")
     a = ap.parse_args(argv)
-    table = evaluate_geometry(a.run, a.capture, a.all_times, a.save_png)
+    table = evaluate_geometry(a.run, a.capture, a.all_times, a.save_png, a.fill_holes)
     keys = ["frames", "psnr", "psnr_observed", "observed", "coverage", "depth_med", "depth_p90"]
     print("camera        " + " ".join(f"{k:>13}" for k in keys))
     for cam, row in table.items():

@@ -11,6 +11,8 @@ def add_arguments(p) -> None:
     p.add_argument("run", help="run directory")
     p.add_argument("capture", nargs="?", default=None, help="capture folder (default: the one recorded in run.json)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--no-fill-holes", action="store_true",
+                   help="score the raw render over black instead of what a viewer sees (uncovered pixels filled)")
 
 
 def main(args) -> int:
@@ -18,7 +20,7 @@ def main(args) -> int:
     from ..evaluate import evaluate
 
     try:
-        result = evaluate(args.run, args.capture, device=args.device)
+        result = evaluate(args.run, args.capture, device=args.device, fill_holes=not args.no_fill_holes)
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
