@@ -71,7 +71,7 @@ class FakeScene4D:
         return dict(means=(self.m0 + t * self.vel).astype(np.float32), quats=self.quats.copy(),
                     scales=self.scales.copy(), opacities=self.opac.copy(), colors=self.colors.copy())
 
-    def render(self, views, background=None):
+    def render(self, views, background=None, fill_holes=False):
         return [splat(self.gaussians_at(v.time), v, background) for v in views]
 
 
