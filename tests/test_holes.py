@@ -37,3 +37,27 @@ def test_wide_border_gets_the_nearest_colour_not_the_background():
 def test_nothing_covered_shows_the_background():
     out = fill_uncovered(torch.tensor([0.1, 0.2, 0.3]).expand(8, 8, 3), torch.zeros(8, 8), (0.1, 0.2, 0.3))
     assert torch.allclose(out, torch.tensor([0.1, 0.2, 0.3]).expand(8, 8, 3))
+
+
+def test_eval_scores_what_a_viewer_sees(tmp_path):
+    import numpy as np
+
+    from engine.evaluate import evaluate
+    from engine.model import load_run
+    from engine.render_views import write_synthetic_capture
+    from engine.train import train
+
+    cap = write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0)
+    train(cap, tmp_path / "r", overrides={"iterations": 2, "init": "random", "init_random_points": 60}, rgb_only=True)
+    filled = evaluate(tmp_path / "r", cap, write=False)
+    raw = evaluate(tmp_path / "r", cap, write=False, fill_holes=False)
+    assert filled["fill_holes"] is True and raw["fill_holes"] is False
+    scene = load_run(tmp_path / "r")
+    from engine.capture import load_capture
+
+    view = load_capture(cap).view(load_capture(cap).eval_frames[0])
+    a, b = scene.render([view])[0], scene.render([view], fill_holes=True)[0]
+    holes = a["alpha"] < 0.5
+    assert holes.any() and np.array_equal(a["alpha"], b["alpha"])
+    assert b["rgb"][holes].mean() > a["rgb"][holes].mean() + 0.05  # no longer the black background
+    assert filled["psnr"] != raw["psnr"]
