@@ -384,7 +384,7 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
     fraction of the image) at extrapolated depth. Raises ``StereoUnavailable``."""
     from .geometry.stereo import backdrop_points, capture_fusion, fused_points
 
-    fa, fb, info = capture_fusion(capture, rgb_cameras(capture))
+    fa, fb, info = capture_fusion(capture, rgb_cameras(capture))  # raises StereoUnavailable
     xyz, rgb, counts = fused_points([fa, fb], instant=instant, fill=fill_depth if fill_stride > 0 else None,
                                     fill_stride=fill_stride)
     info = {**info, **counts, "points": int(len(xyz)), "matcher": "sgbm", "filled": counts["filled"]}

@@ -352,7 +352,11 @@ def capture_fusion(capture, cameras: list[str], frames=None, *, rel_tolerance: f
     da, ca, db, cb, ia, ib = [], [], [], [], [], []
     for _t, fa, fb in inst:
         img_a, img_b = fa.load_rgb(), fb.load_rgb()
-        (d1, c1), (d2, c2) = pair_depths(img_a, img_b, pair, **options)
+        try:
+            (d1, c1), (d2, c2) = pair_depths(img_a, img_b, pair, **options)
+        except cv2.error as exc:  # e.g. images too small for the matcher's window
+            raise StereoUnavailable(f"OpenCV could not match {a} and {b} ({fa.path.name}): "
+                                    f"{str(exc).strip().splitlines()[-1]}") from None
         da.append(d1), ca.append(c1), db.append(d2), cb.append(c2), ia.append(img_a), ib.append(img_b)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels
