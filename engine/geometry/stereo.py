@@ -112,7 +112,7 @@ def scene_depth_range(view_a, view_b) -> tuple[float, float]:
     return 2.0 * base, 100.0 * base
 
 
-def rectify_pair(view_a, view_b, *, min_baseline_ratio: float = 1e-3, min_overlap: float = 0.02,
+def rectify_pair(view_a, view_b, *, min_baseline: float = 1e-6, min_overlap: float = 0.02,
                  scale: float = 2.0) -> RectifiedPair:
     """Rectify views a and b (cv2.stereoRectify, alpha 1: every source pixel kept, images
     ``scale`` x larger: finer disparity steps, 1.26% -> 1.00% median depth error on the demo). Raises
@@ -120,8 +120,8 @@ def rectify_pair(view_a, view_b, *, min_baseline_ratio: float = 1e-3, min_overla
     ka, kb = view_a.intrinsics, view_b.intrinsics
     R, T = relative_pose(view_a, view_b)
     base = float(np.linalg.norm(T))
-    extent = max(1e-9, float(np.linalg.norm(view_a.center)) + float(np.linalg.norm(view_b.center)))
-    if base <= min_baseline_ratio * max(extent, 1.0) * 1e-2 or base < 1e-6:
+    extent = max(1.0, float(np.linalg.norm(view_a.center)), float(np.linalg.norm(view_b.center)))
+    if base < min_baseline * extent:  # relative to the coordinates' magnitude (float noise)
         raise StereoUnavailable(f"cameras {view_a.name or 'a'} and {view_b.name or 'b'} are at the same place "
                                 f"(baseline {base:.3g} m): two views from one point give no depth")
     ov = overlap_fraction(view_a, view_b, scene_depth_range(view_a, view_b))
