@@ -22,10 +22,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.capture import load_capture  # noqa: E402
-from engine.images import read_exr_channels  # noqa: E402
-from engine.metrics import psnr  # noqa: E402
-from engine.model import load_run  # noqa: E402
+from engine.evaluate.metrics import psnr  # noqa: E402
+from engine.io.capture import load_capture  # noqa: E402
+from engine.io.images import read_exr_channels  # noqa: E402
+from engine.scene.model import load_run  # noqa: E402
 
 
 def depth_files(cap) -> dict:
@@ -108,7 +108,7 @@ def evaluate_geometry(run, capture=None, all_times: bool = False, save_dir=None,
                 row["observed"] = float(obs.mean())
                 row["psnr_observed"] = psnr(r["rgb"], gt, obs) if obs.any() else float("nan")
         if save_dir is not None and f.camera not in out:  # first RGB instant: GT | render | alpha
-            from engine.images import write_png
+            from engine.io.images import write_png
 
             a = np.repeat(r["alpha"][..., None], 3, -1)
             write_png(Path(save_dir) / f"{f.camera}_t{t:.3f}.png", np.concatenate([gt, np.clip(r["rgb"], 0, 1), a], 1))

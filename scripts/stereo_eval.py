@@ -19,11 +19,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.capture import load_capture  # noqa: E402
-from engine.geometry.stereo import capture_fusion  # noqa: E402
-from engine.init_points import rgb_cameras, stereo_depths  # noqa: E402
-
 from geometry_eval import depth_files, gt_depth  # noqa: E402
+
+from engine.geometry.planesweep import rgb_cameras, stereo_depths  # noqa: E402
+from engine.geometry.stereo import capture_fusion  # noqa: E402
+from engine.io.capture import load_capture  # noqa: E402
 
 
 def pointmap_depth(cap, frame) -> np.ndarray | None:

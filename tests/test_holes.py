@@ -43,9 +43,9 @@ def test_eval_scores_what_a_viewer_sees(tmp_path):
     import numpy as np
 
     from engine.evaluate import evaluate
-    from engine.model import load_run
-    from engine.render_views import write_synthetic_capture
+    from engine.scene.model import load_run
     from engine.train import train
+    from tools.synthetic import write_synthetic_capture
 
     cap = write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0)
     train(cap, tmp_path / "r", overrides={"iterations": 2, "init": "random", "init_random_points": 60}, rgb_only=True)
@@ -53,7 +53,7 @@ def test_eval_scores_what_a_viewer_sees(tmp_path):
     raw = evaluate(tmp_path / "r", cap, write=False, fill_holes=False)
     assert filled["fill_holes"] is True and raw["fill_holes"] is False
     scene = load_run(tmp_path / "r")
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     view = load_capture(cap).view(load_capture(cap).eval_frames[0])
     a, b = scene.render([view])[0], scene.render([view], fill_holes=True)[0]

@@ -1,12 +1,18 @@
 """Frame interpolation (RIFE stand-ins) and the block colour loss (paper Eq. 18-20)."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
-from engine.interpolation import (avg_pool_blocks, block_colour_loss, flow_interpolate, interpolate,
-                                  linear_blend, lk_flow, warp)
+from engine.train.interpolation import (
+    avg_pool_blocks,
+    block_colour_loss,
+    flow_interpolate,
+    interpolate,
+    linear_blend,
+    lk_flow,
+    warp,
+)
 
 
 def _texture(h=64, w=80, seed=0):

@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.geometry.stereo import (FusedDepth, StereoUnavailable, capture_fusion, fuse_instants, pair_depths,
-                                    rectify_pair)
+from engine.geometry.stereo import (
+    FusedDepth,
+    StereoUnavailable,
+    capture_fusion,
+    fuse_instants,
+    pair_depths,
+    rectify_pair,
+)
 
 W, H = 128, 96
 K = Intrinsics(W, H, 110.0, 110.0, W / 2, H / 2)
@@ -141,8 +147,8 @@ def _no_overlap(cap):
 
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory):
-    from engine.capture import load_capture
-    from engine.render_views import write_synthetic_capture
+    from engine.io.capture import load_capture
+    from tools.synthetic import write_synthetic_capture
 
     cap = load_capture(write_synthetic_capture(tmp_path_factory.mktemp("st") / "cap", width=64, height=48, n_rgb=3,
                                                eval_fps=30.0))
@@ -154,7 +160,7 @@ def small_capture(tmp_path_factory):
                                           (_identical_poses, "identical poses|same place"),
                                           (_no_overlap, "do not see the same")])
 def test_not_a_pair_falls_back_to_random_and_says_why(small_capture, make, message):
-    from engine.init_points import initial_points
+    from engine.geometry.init_points import initial_points
 
     cap = make(small_capture)
     with pytest.raises(StereoUnavailable, match=message):
@@ -169,7 +175,7 @@ def test_not_a_pair_falls_back_to_random_and_says_why(small_capture, make, messa
 
 
 def test_fallback_is_recorded_in_run_json_and_depth_prior_skipped(small_capture, tmp_path):
-    from engine.checkpoint import read_run_json
+    from engine.io.checkpoint import read_run_json
     from engine.train import train
 
     cap = _identical_poses(small_capture)
@@ -181,7 +187,7 @@ def test_fallback_is_recorded_in_run_json_and_depth_prior_skipped(small_capture,
 
 
 def test_capture_stereo_init_covers_the_scene(small_capture):
-    from engine.init_points import initial_points
+    from engine.geometry.init_points import initial_points
 
     pts = initial_points(small_capture, "stereo", max_points=2000)
     assert pts.method == "stereo" and pts.info["matcher"] == "sgbm" and pts.info["instants"] == 3

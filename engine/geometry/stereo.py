@@ -169,9 +169,10 @@ def match_rectified(left: np.ndarray, right: np.ndarray, num_disparities: int, *
                                  uniquenessRatio=uniqueness, disp12MaxDiff=-1, speckleWindowSize=0,
                                  preFilterCap=31, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     # SGBM leaves the first numDisparities columns unmatched: pad on the left, crop after
-    def _sgbm(l, r):
-        l, r = (cv2.copyMakeBorder(np.ascontiguousarray(x), 0, 0, nd, 0, cv2.BORDER_CONSTANT, value=0) for x in (l, r))
-        return np.ascontiguousarray(sgbm.compute(l, r)[:, nd:])
+    def _sgbm(first, second):
+        first, second = (cv2.copyMakeBorder(np.ascontiguousarray(x), 0, 0, nd, 0, cv2.BORDER_CONSTANT, value=0)
+                         for x in (first, second))
+        return np.ascontiguousarray(sgbm.compute(first, second)[:, nd:])
 
     dl16 = _sgbm(left, right)
     cv2.filterSpeckles(dl16, -16, speckle_window, speckle_range * 16)
@@ -294,9 +295,11 @@ def fuse_instants(camera: str, view, times, depths, confidences, images, *, rel_
     valid = np.isfinite(D)
     Dz = np.where(valid, D, 0.0)
     # support[i] = number of instants j whose depth agrees with instant i's
-    agree = valid[:, None] & valid[None, :] & (np.abs(Dz[:, None] - Dz[None, :]) <= rel_tolerance * np.maximum(Dz[:, None], 1e-9))
+    close = np.abs(Dz[:, None] - Dz[None, :]) <= rel_tolerance * np.maximum(Dz[:, None], 1e-9)
+    agree = valid[:, None] & valid[None, :] & close
     support = agree.sum(1)                                               # [T,H,W]
-    score = np.where(valid, support.astype(np.float64) + 1e-3 * Dz / max(float(np.nanmax(Dz)) if valid.any() else 1.0, 1e-9), -1.0)
+    far = max(float(np.nanmax(Dz)) if valid.any() else 1.0, 1e-9)
+    score = np.where(valid, support.astype(np.float64) + 1e-3 * Dz / far, -1.0)  # ties: the farthest
     best = score.argmax(0)
     n_valid = valid.sum(0)
     sup_best = np.take_along_axis(support, best[None], 0)[0]
@@ -478,3 +481,16 @@ def backdrop_points(fused: FusedDepth, filled_depth: np.ndarray, fraction: float
     c2w = np.linalg.inv(np.asarray(fused.view.viewmat, np.float64))
     xyz = cam @ c2w[:3, :3].T + c2w[:3, 3]
     return xyz.astype(np.float32), col[v, u].astype(np.float32)
+
+
+def stereo_depth_priors(capture, frames, *, min_pixels: int = 16) -> dict:
+    """Depth supervision of ``lambda_depth``: {id(frame): (depth [H,W] float32, mask [H,W] bool)}
+    for the pair's frames with at least ``min_pixels`` known depths (:func:`fused_depth_priors`);
+    ``{"_unavailable": message}`` when the cameras are not a usable pair."""
+    from .planesweep import rgb_cameras
+
+    try:
+        priors = fused_depth_priors(capture, frames, rgb_cameras(capture))
+    except StereoUnavailable as err:
+        return {"_unavailable": str(err)}
+    return {k: v for k, v in priors.items() if int(v[1].sum()) >= min_pixels}
