@@ -39,7 +39,7 @@ def test_nothing_covered_shows_the_background():
     assert torch.allclose(out, torch.tensor([0.1, 0.2, 0.3]).expand(8, 8, 3))
 
 
-def test_eval_scores_what_a_viewer_sees(tmp_path):
+def test_eval_can_score_what_a_viewer_sees(tmp_path):
     import numpy as np
 
     from engine.evaluate import evaluate
@@ -49,8 +49,8 @@ def test_eval_scores_what_a_viewer_sees(tmp_path):
 
     cap = write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0)
     train(cap, tmp_path / "r", overrides={"iterations": 2, "init": "random", "init_random_points": 60}, rgb_only=True)
-    filled = evaluate(tmp_path / "r", cap, write=False)
-    raw = evaluate(tmp_path / "r", cap, write=False, fill_holes=False)
+    filled = evaluate(tmp_path / "r", cap, write=False, fill_holes=True)
+    raw = evaluate(tmp_path / "r", cap, write=False)
     assert filled["fill_holes"] is True and raw["fill_holes"] is False
     scene = load_run(tmp_path / "r")
     from engine.io.capture import load_capture

@@ -14,13 +14,14 @@ def add_arguments(p) -> None:
     p.add_argument("run", help="run directory")
     p.add_argument("capture", nargs="?", default=None, help="capture folder (default: the one recorded in run.json)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--no-fill-holes", action="store_true",
-                   help="score the raw render over black instead of what a viewer sees (uncovered pixels filled)")
+    p.add_argument("--fill-holes", action="store_true",
+                   help="score what a viewer of an opaque render sees: uncovered pixels filled from their "
+                        "neighbourhood instead of the black background (issue 14)")
 
 
 def main(args) -> int:
     try:
-        result = evaluate(args.run, args.capture, device=args.device, fill_holes=not args.no_fill_holes)
+        result = evaluate(args.run, args.capture, device=args.device, fill_holes=args.fill_holes)
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
