@@ -76,7 +76,7 @@ def test_edge_aware_smoothness():
     step.requires_grad_(True)
     on_flat = edge_aware_smoothness(step, alpha, flat)
     on_edge = edge_aware_smoothness(step, alpha, edge)
-    assert float(on_flat.detach()) > 5 * float(on_edge) > 0
+    assert float(on_flat.detach()) > 5 * float(on_edge.detach()) > 0
     on_flat.backward()
     assert step.grad.abs().sum() > 0
 
