@@ -35,6 +35,7 @@ REQUIREMENTS = (
     "pillow==13.0.0",
     "plyfile==1.1.2",
     "zstandard==0.25.0",
+    "opencv-python-headless==4.11.0.86",  # stereo (engine.geometry.stereo); 4.11 keeps numpy < 2
 )
 
 _added_paths: list[str] = []  # the sys.path entries this add-on appended

@@ -232,7 +232,8 @@ def render_views_job(*, progress, cancel, scene4d, views: list, outputs: list, f
     for i, (view, path) in enumerate(zip(views, outputs)):
         if cancel is not None and cancel.is_set():
             return {"status": "cancelled", "written": written}
-        engine_bridge.write_renders(scene4d, [view], None, fmt, paths=[path], png_background=png_background)
+        engine_bridge.write_renders(scene4d, [view], None, fmt, paths=[path], png_background=png_background,
+                                    fill_holes=True)  # opaque PNG: no black holes (issue 14)
         written.append(str(path))
         el = time.monotonic() - t_start
         progress({"step": i + 1, "total_steps": len(views), "stage": "rendering", "elapsed_s": el,

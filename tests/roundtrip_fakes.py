@@ -76,7 +76,7 @@ class FakeScene4D:
         return dict(means=(self.m0 + t * self.vel).astype(np.float32), quats=self.quats.copy(),
                     scales=self.scales.copy(), opacities=self.opac.copy(), colors=self.colors.copy())
 
-    def render(self, views, background=None, time=None):
+    def render(self, views, background=None, time=None, fill_holes=False):
         return [splat(self.gaussians_at(v.time if time is None else time), v, background) for v in views]
 
 

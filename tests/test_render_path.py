@@ -136,7 +136,7 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     gate = threading.Event()
 
     class Slow(FakeScene4D):
-        def render(self, views, background=None, time=None):
+        def render(self, views, background=None, time=None, fill_holes=False):
             gate.wait(10)
             return super().render(views, background, time)
 

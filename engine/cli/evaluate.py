@@ -30,6 +30,9 @@ def add_arguments(p) -> None:
     p.add_argument("run", help="run directory, or a compact cache (.bt4c; scored without writing files)")
     p.add_argument("capture", nargs="?", default=None, help="capture folder (default: the one recorded in run.json)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--fill-holes", action="store_true",
+                   help="score what a viewer of an opaque render sees: uncovered pixels filled from their "
+                        "neighbourhood instead of the black background (issue 14)")
     p.add_argument("--per-camera", action="store_true",
                    help="novel-view table per eval camera (needs ground-truth depth in the capture)")
     p.add_argument("--images", type=Path, default=None,
@@ -82,7 +85,7 @@ def main(args) -> int:
         scene = load_result(args.run, device=args.device)
         # a cache is a single file: its scores are printed, nothing is written beside it
         result = evaluate(args.run, args.capture, device=args.device, scene=scene,
-                          write=not isinstance(scene, CachedScene))
+                          write=not isinstance(scene, CachedScene), fill_holes=args.fill_holes)
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -9,7 +9,12 @@ returns one JSON-able dict:
 * ``psnr_dynamic``: PSNR over motion-mask pixels (GT changes across neighbouring eval frames),
   averaged over frames that have any;
 * ``lpips``: LPIPS-Alex (``lpips.py``; lower is better), mean over all eval frames;
-* ``n_frames``, ``n_interframe``, ``train_seconds``, ``num_gaussians``, ``render_seconds``.
+* ``n_frames``, ``n_interframe``, ``train_seconds``, ``num_gaussians``, ``render_seconds``;
+* ``fill_holes``: with ``fill_holes=True`` frames are scored as a viewer of an opaque render
+  sees them, uncovered pixels filled from their covered neighbourhood
+  (``Scene4D.render(fill_holes=True)``, issue 14) rather than showing the black training
+  background. Off by default: a capture whose background really is black (the synthetic
+  test captures) would be scored against invented colour.
 
 It writes RUN/eval_frames.csv (index, time, camera, interframe, psnr, ssim, psnr_dynamic,
 lpips) and RUN/metrics.json. ``scene=`` scores an already opened result instead (e.g. a
@@ -47,7 +52,7 @@ def _round(x, nd=4):
 
 
 def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_threshold: float = 0.04,
-             mask_dilate: int = 2, scene=None) -> dict:
+             mask_dilate: int = 2, scene=None, fill_holes: bool = False) -> dict:
 
     run_dir = Path(run_dir)
     scene = load_run(run_dir, device=device) if scene is None else scene
@@ -75,7 +80,7 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         gts = [fr.load_rgb() for fr in fs]
         masks = motion_masks(gts, mask_threshold, mask_dilate)
         for fr, gt, mask in zip(fs, gts, masks):
-            pred = scene.render([cap.view(fr)])[0]["rgb"]
+            pred = scene.render([cap.view(fr)], fill_holes=fill_holes)[0]["rgb"]
             p_dyn = psnr(pred, gt, mask) if mask.any() else float("nan")
             rows.append({"time": float(fr.time), "camera": cam, "interframe": is_interframe(fr.time, rgb_times),
                          "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "psnr_dynamic": p_dyn,
@@ -101,6 +106,7 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         "train_seconds": _round(run_info.get("train_seconds"), 2),
         "num_gaussians": scene.num_gaussians,
         "render_seconds": round(render_s, 3),
+        "fill_holes": bool(fill_holes),
         "preset": run_info.get("preset", info.get("preset")),
         "step": info.get("step"),
         "run_dir": str(run_dir.resolve()),

@@ -63,11 +63,12 @@ class CachedScene:
     # K evenly spaced samples for Blender's Load Result: the same code as a run's
     sample = Scene4D.sample
 
-    def render(self, views, background=None, time: float | None = None) -> list[dict]:
-        """Render each View at its own time (or ``time``): rgb [H,W,3], alpha, depth."""
+    def render(self, views, background=None, time: float | None = None, fill_holes: bool = False) -> list[dict]:
+        """Render each View at its own time (or ``time``): rgb [H,W,3], alpha, depth
+        (``fill_holes`` as in ``Scene4D.render``)."""
         bg = self.background if background is None else background
         return [render_splats(self.splats_at(v.time if time is None else time), view_tensors(v, self.device), bg,
-                              self.near_plane) for v in views]
+                              self.near_plane, fill_holes=fill_holes) for v in views]
 
 
 def load_result(path, device="cpu"):

@@ -136,13 +136,15 @@ def output_names(views: list[View], names: list[str] | None = None) -> list[str]
 
 def write_renders(scene, views: list[View], out_dir, fmt: str = "png", *, time: float | None = None,
                   names: list[str] | None = None, paths: list | None = None,
-                  png_background=None) -> list[Path]:
+                  png_background=None, fill_holes: bool = False) -> list[Path]:
     """Render ``views`` (each at its own time, or at ``time``) into ``out_dir``, one file each
     (EXR: linear premultiplied RGBA + Z; PNG: sRGB straight RGBA; see the module doc).
 
     ``paths``: one output file per view (then ``out_dir`` and ``names`` are not used), e.g.
     Blender's frame-numbered names. ``png_background``: PNG only; None writes RGBA with
-    straight alpha, an RGB colour writes RGB composited over that colour. Colliding output
+    straight alpha, an RGB colour writes RGB composited over that colour -- or, with
+    ``fill_holes``, over the colour the covered neighbourhood implies (issue 14: what no
+    Gaussian covers does not show the background as if it were scene content). Colliding output
     names are refused before anything is rendered."""
     if fmt not in ("png", "exr"):
         raise ValueError(f"format must be png or exr, got {fmt!r}")
@@ -160,7 +162,8 @@ def write_renders(scene, views: list[View], out_dir, fmt: str = "png", *, time: 
     written = []
     for v, target in zip(views, targets):
         bg = png_background if (fmt == "png" and png_background is not None) else (0.0, 0.0, 0.0)
-        r = scene.render([v], background=bg, time=time)[0]
+        opaque = fmt == "png" and png_background is not None
+        r = scene.render([v], background=bg, time=time, fill_holes=fill_holes and opaque)[0]
         rgb, alpha, depth = r["rgb"], r["alpha"], r["depth"]
         if fmt == "png":
             if png_background is not None:

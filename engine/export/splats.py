@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..raster import rasterization
+from ..raster.holes import fill_uncovered
 from ..scene.gaussians import SH_C0, eval_sh, num_sh_bases
 
 SPLAT_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
@@ -71,10 +72,10 @@ def splats_to_tensors(s: dict, device="cpu") -> dict:
 
 
 def render_splats(s: dict, vt: dict, background=(0.0, 0.0, 0.0), near_plane: float = 0.01,
-                  backend: str = "auto") -> dict:
+                  backend: str = "auto", fill_holes: bool = False) -> dict:
     """Render splats into one view (``engine.scene.model.view_tensors`` dict) with the engine's
     rasterizer -> ``rgb [H,W,3]`` in [0,1], ``alpha [H,W]``, ``depth [H,W]`` (float32 numpy),
-    as ``Scene4D.render`` gives them."""
+    as ``Scene4D.render`` gives them (``fill_holes`` as there)."""
     with torch.no_grad():
         a = splats_to_tensors(s, vt["viewmat"].device)
         deg = sh_degree_of(a["sh"])
@@ -83,6 +84,8 @@ def render_splats(s: dict, vt: dict, background=(0.0, 0.0, 0.0), near_plane: flo
         rgb, alpha, meta = rasterization(a["means"], a["quats"], a["scales"], a["opacities"], colors, vt["viewmat"],
                                          vt["K"], vt["width"], vt["height"], backgrounds=bg, render_depth=True,
                                          near_plane=near_plane, backend=backend)
+        if fill_holes:
+            rgb = fill_uncovered(rgb[0], alpha[0], background)[None]
         depth = meta.get("depths")
         return {"rgb": _np(rgb[0].clamp(0, 1)), "alpha": _np(alpha[0, ..., 0]),
                 "depth": _np(depth[0, ..., 0]) if depth is not None else np.zeros(alpha.shape[1:3], np.float32)}

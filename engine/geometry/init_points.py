@@ -4,7 +4,9 @@ Three sources, in order of preference for ``method="auto"`` (see README for the 
 comparison):
 
 * ``ply``    -- the capture's ``points.ply`` (e.g. from DUSt3R or the scene generator);
-* ``stereo`` -- plane-sweep stereo between the two calibrated train RGB cameras at their
+* ``stereo`` -- OpenCV semi-global matching between the two calibrated train RGB cameras,
+  fused over every common RGB instant (:func:`sgbm_points`, :mod:`engine.geometry.stereo`);
+* ``planesweep`` -- the older plane-sweep stereo between the two train RGB cameras at their
   first common instant: zero-mean NCC over a window on every fronto-parallel depth plane
   of the reference camera, winner-take-all with a parabolic sub-plane fit, kept only where
   the window is textured, the match is distinctive and the two directions agree
@@ -14,12 +16,13 @@ comparison):
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..io.points import load_points
-from .stereo import (
+from .planesweep import (
     STEREO_DEFAULTS,
     _backproject,
     _depth_range,
@@ -30,6 +33,7 @@ from .stereo import (
     stereo_depths,
     stereo_pair,
 )
+from .stereo import StereoUnavailable, backdrop_points, capture_fusion, fused_points
 
 
 @dataclass
@@ -165,25 +169,68 @@ def _subsample(p: InitPoints, max_points: int, seed: int) -> InitPoints:
     return InitPoints(p.xyz[idx], p.rgb[idx], p.method, p.info)
 
 
-def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_random: int = 3000,
-                   seed: int = 0, min_points: int = 200, fill_stride: int = 3) -> InitPoints:
-    """The initial point cloud by ``method`` (auto | ply | stereo | random).
+def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: float = 0.0):
+    """Issue 14: OpenCV semi-global matching on every common RGB instant of the pair, fused per
+    camera (:mod:`engine.geometry.stereo`): static depth + what moves at the first instant +
+    interpolated hole fill every ``fill_stride`` px. Returns (InitPoints, backdrop InitPoints
+    or None): with ``backdrop`` > 0, points beyond the image borders (a ring that wide, as a
+    fraction of the image) at extrapolated depth. Raises ``StereoUnavailable``."""
+    fa, fb, info = capture_fusion(capture, rgb_cameras(capture))  # raises StereoUnavailable
+    xyz, rgb, counts = fused_points([fa, fb], instant=instant, fill=fill_depth if fill_stride > 0 else None,
+                                    fill_stride=fill_stride)
+    info = {**info, **counts, "points": int(len(xyz)), "matcher": "sgbm", "filled": counts["filled"]}
+    if len(xyz):
+        dep = _project(fa.view, xyz)[1]
+        info["depth_p5_p95"] = [float(np.percentile(dep, 5)), float(np.percentile(dep, 95))]
+    back = None
+    if backdrop > 0:
+        parts = []
+        for f in (fa, fb):
+            ok = np.isfinite(f.static_depth)
+            if ok.any():
+                parts.append(backdrop_points(f, fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok),
+                                             backdrop))
+        if parts:
+            back = InitPoints(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), "backdrop")
+    return InitPoints(xyz, rgb, "stereo", info), back
 
-    Stereo leaves holes (textureless areas, occlusions): with ``fill_stride`` > 0 they are
-    filled with points at interpolated depths (:func:`fill_depth`), else with ``n_random / 4``
-    random points in the stereo depth range.
+
+def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_random: int = 3000,
+                   seed: int = 0, min_points: int = 200, fill_stride: int = 3, backdrop: float = 0.0) -> InitPoints:
+    """The initial point cloud by ``method`` (auto | ply | stereo | planesweep | random).
+
+    ``stereo`` is OpenCV SGBM fused over every RGB instant (:func:`sgbm_points`); when the
+    cameras are not a usable pair (one camera, identical poses, no overlap, nothing matched)
+    it falls back to ``random`` with a warning, recorded as ``info["fallback"]`` (run.json).
+    ``planesweep`` is the older NCC plane sweep at the first common instant. Stereo leaves
+    holes (textureless areas, occlusions): with ``fill_stride`` > 0 they are filled with
+    points at interpolated depths (:func:`fill_depth`), else with ``n_random / 4`` random
+    points in the stereo depth range.
     """
-    if method not in ("auto", "ply", "stereo", "random"):
-        raise ValueError(f"unknown init method {method!r} (auto, ply, stereo, random)")
+    if method not in ("auto", "ply", "stereo", "planesweep", "random"):
+        raise ValueError(f"unknown init method {method!r} (auto, ply, stereo, planesweep, random)")
     result = None
+    fallback = None
     if method in ("auto", "ply"):
         result = ply_points(capture)
         if result is None and method == "ply":
             raise ValueError("the capture has no points.ply; use init='stereo' or 'random'")
-    if result is None and method in ("auto", "stereo"):
-        result = stereo_points(capture, fill_stride=fill_stride)
-        if result is not None and len(result.xyz) - result.info.get("filled", 0) < min_points:
-            result = None if method == "auto" else result
+    if result is None and method in ("auto", "stereo", "planesweep"):
+        # ---- issue 14: SGBM stereo with a recorded fallback (engine.geometry.stereo) ----
+        back = None
+        try:
+            if method == "planesweep":
+                result = stereo_points(capture, fill_stride=fill_stride)
+            else:
+                result, back = sgbm_points(capture, fill_stride=fill_stride, backdrop=backdrop)
+            if result is not None and len(result.xyz) - result.info.get("filled", 0) < min_points:
+                raise StereoUnavailable(f"stereo found only {len(result.xyz) - result.info.get('filled', 0)} "
+                                        f"confident points (< {min_points})")
+        except StereoUnavailable as err:
+            fallback = {"from": "stereo", "to": "random", "reason": str(err)}
+            warnings.warn(f"stereo initialisation unavailable: {err}; using random points", stacklevel=2)
+            result = None
+        # ---- end issue 14 ----
         if result is not None:
             result = _subsample(result, max_points, seed)
             if fill_stride <= 0 and n_random > 0:
@@ -191,7 +238,12 @@ def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_r
                 fill = random_points(capture, max(1, n_random // 4), depth_range=dep, seed=seed + 1)
                 result = InitPoints(np.concatenate([result.xyz, fill.xyz]), np.concatenate([result.rgb, fill.rgb]),
                                     "stereo", {**result.info, "random_fill": int(len(fill.xyz))})
+            if back is not None and len(back.xyz):
+                result = InitPoints(np.concatenate([result.xyz, back.xyz]), np.concatenate([result.rgb, back.rgb]),
+                                    "stereo", {**result.info, "backdrop": int(len(back.xyz))})
             return result
     if result is None:
         result = random_points(capture, n_random, seed=seed)
+        if fallback is not None:
+            result.info["fallback"] = fallback
     return _subsample(result, max_points, seed)

@@ -21,6 +21,7 @@ from ..cameras import View
 from ..errors import RunError
 from ..io.checkpoint import load_checkpoint, read_run_json
 from ..raster import rasterization
+from ..raster.holes import fill_uncovered
 from .deformation import DeformationField
 from .gaussians import GaussianModel, num_sh_bases
 
@@ -231,13 +232,21 @@ class Scene4D:
         out["times"] = times
         return out
 
-    def render(self, views: list[View], background=None, time: float | None = None) -> list[dict]:
-        """Render each View at its own time (or ``time``): rgb [H,W,3] sRGB-encoded, alpha, depth."""
+    def render(self, views: list[View], background=None, time: float | None = None,
+               fill_holes: bool = False) -> list[dict]:
+        """Render each View at its own time (or ``time``): rgb [H,W,3] sRGB-encoded, alpha, depth.
+
+        ``fill_holes``: where alpha < 1, show the colour the covered neighbourhood implies
+        instead of the background (:func:`engine.raster.holes.fill_uncovered`, issue 14);
+        rgb is then no longer premultiplied, alpha unchanged."""
         out = []
         with torch.no_grad():
             for v in views:
                 vt = view_tensors(v, self.device)
                 rgb, alpha, meta, _ = self.model.render(vt, time, background=background)
+                if fill_holes:
+                    bg = self.model.background if background is None else background
+                    rgb = fill_uncovered(rgb[0], alpha[0], bg)[None]
                 depth = meta.get("depths")
                 out.append({
                     "rgb": _np(rgb[0].clamp(0, 1)),

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim
 
+from .geometry_losses import geometry_loss_terms
 from .presets import TrainConfig
 
 __all__ = ["LossTerm", "StepContext", "default_loss_terms"]
@@ -92,5 +93,6 @@ def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
         terms.append(LossTerm("block_l1", cfg.lambda_block, _block_l1))
     if cfg.lambda_depth > 0:
         terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
+    terms.extend(geometry_loss_terms(cfg, LossTerm))  # issue 14 (engine.train.geometry_losses)
     terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
     return terms

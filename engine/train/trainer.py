@@ -46,6 +46,7 @@ from ..scene.model import Model4D, near_plane_for_extent, view_tensors
 from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
+from .geometry_losses import geometry_post_step_hooks, step_background
 from .losses import LossTerm, StepContext, default_loss_terms
 from .presets import TrainConfig
 from .spike_guidance import guidance_factory, spike_stream_info
@@ -125,8 +126,9 @@ class Trainer:
             vt["camera"] = f.camera
             vt["synthetic"] = bool(getattr(f, "extra", {}).get("synthetic"))  # baseline frames
             self.items.append(vt)
-        if cfg.lambda_depth > 0:
+        if cfg.lambda_depth > 0:  # issue 14: fused SGBM depth at every RGB instant
             priors = stereo_depth_priors(capture, frames)
+            self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
             for f, it in zip(frames, self.items):
                 if id(f) in priors and priors[id(f)][1].sum() >= 16:
                     d, ok = priors[id(f)]
@@ -138,6 +140,7 @@ class Trainer:
         self.model: Model4D | None = None
         self.deform_opt: torch.optim.Adam | None = None
         self.loss_terms = default_loss_terms(cfg)
+        self.post_step_hooks = geometry_post_step_hooks(cfg)  # issue 14: (trainer, step, item, meta)
         # extension hooks (the spike branch): called with the trainer once the deformation
         # field exists (new run or resumed), e.g. to set ``field.fine_encoder`` and call
         # :meth:`add_deformation_parameters`; ``fine_provider(item) -> [N, W] | None`` feeds
@@ -206,8 +209,10 @@ class Trainer:
         torch.manual_seed(self.seed)
         cfg = self.cfg
         pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
-                             seed=self.seed, fill_stride=cfg.init_fill_stride)
+                             seed=self.seed, fill_stride=cfg.init_fill_stride, backdrop=cfg.init_backdrop)
         self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
+        if getattr(self, "depth_prior_note", None):
+            self.init_info["depth_prior_unavailable"] = self.depth_prior_note
         centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3]
                             for it in self.items])
         self.extent = scene_extent(pts.xyz, centers)
@@ -321,7 +326,8 @@ class Trainer:
             self._carry_forward(self.time_window(step))
         item = self.items[self.frame_index(step)]
         fine = self.fine_provider(item) if (self.fine_provider is not None and stage == "deform") else None
-        rgb, alpha, meta, attrs = model.render(item, fine=fine)
+        rgb, alpha, meta, attrs = model.render(item, fine=fine,
+                                               background=step_background(cfg, step, self.seed, self.device))
         means2d = meta.get("means2d")
         if means2d is not None and means2d.requires_grad:
             means2d.retain_grad()
@@ -348,6 +354,8 @@ class Trainer:
         g.optimizer.step()
         if self.deform_opt is not None and stage == "deform":
             self.deform_opt.step()
+        for hook in self.post_step_hooks:
+            hook(self, step, item, meta)
         if self.freeze is not None and stage == "deform":  # observation module, on this render's rows
             self.freeze.after_step(step, item, rgb, meta)
         info = {}

@@ -1,0 +1,172 @@
+"""Training terms that keep geometry consistent across the two train views (issue 14, item 3).
+
+Each is a :class:`engine.presets.TrainConfig` switch, off by default unless README's
+measurement says it pays:
+
+* ``lambda_binocular`` -- binocular consistency (after "Binocular-guided 3D Gaussian
+  Splatting with view consistency for sparse view synthesis", Han et al., NeurIPS 2024,
+  Eq. 4-6): the depth rendered at train view A carries the partner camera B's image (same
+  instant) into A; the L1 between that warped image and A's own image trains A's depth. A
+  wrong depth fetches the wrong colour; textured surfaces therefore pull Gaussians onto the
+  surface both views agree on, which one view's photometric loss alone cannot.
+* ``lambda_depth_smooth`` -- edge-aware smoothness of the rendered depth (Godard et al. 2017):
+  ``|d/dx D| exp(-gamma |d/dx I|)``, on depth divided by its mean: flat image areas (a
+  weakly textured floor) get smooth depth, image edges may carry depth edges.
+* ``opacity_decay`` -- each step, the opacity of the Gaussians the step's view sees is
+  multiplied by this factor (Binocular-guided 3DGS, Sec. 3.3, 0.995): Gaussians that the
+  photometric loss keeps needing recover, floaters that only one view supports fade and are
+  pruned by the usual ``prune_opacity`` rule. Gaussians outside the rendered view are left
+  alone (so the backdrop beyond every train frustum keeps its opacity).
+* ``random_background`` -- each step composites over a random colour instead of the black
+  training background, so a transparent hole can never pass for dark scene content.
+
+Functions take and return tensors with documented shapes; the trainer calls
+:func:`geometry_loss_terms` (loss list) and :func:`geometry_post_step_hooks`.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def pixel_grid(height: int, width: int, device=None) -> torch.Tensor:
+    """[H, W, 2] pixel-centre coordinates (u + 0.5, v + 0.5) of the engine's convention."""
+    v, u = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32) + 0.5,
+                          torch.arange(width, device=device, dtype=torch.float32) + 0.5, indexing="ij")
+    return torch.stack([u, v], -1)
+
+
+def warp_into(depth_a: torch.Tensor, K_a: torch.Tensor, viewmat_a: torch.Tensor, image_b: torch.Tensor,
+              K_b: torch.Tensor, viewmat_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Image b seen through view a's depth.
+
+    depth_a [H,W] planar depth of view a; K [3,3]; viewmat [4,4] OpenCV world-to-camera;
+    image_b [Hb,Wb,C]. Returns (warped [H,W,C], valid [H,W] bool: in front of b, inside b's
+    image, depth > 0). Differentiable in ``depth_a`` (bilinear sampling of b).
+    """
+    H, W = depth_a.shape
+    uv = pixel_grid(H, W, depth_a.device)
+    x = (uv[..., 0] - K_a[0, 2]) / K_a[0, 0] * depth_a
+    y = (uv[..., 1] - K_a[1, 2]) / K_a[1, 1] * depth_a
+    cam = torch.stack([x, y, depth_a], -1)                          # [H,W,3] camera a
+    rel = viewmat_b @ torch.linalg.inv(viewmat_a)                   # a -> b
+    q = cam @ rel[:3, :3].T + rel[:3, 3]
+    z = q[..., 2]
+    zs = torch.where(z > 1e-6, z, torch.full_like(z, 1e-6))
+    ub = K_b[0, 0] * q[..., 0] / zs + K_b[0, 2]
+    vb = K_b[1, 1] * q[..., 1] / zs + K_b[1, 2]
+    Hb, Wb = image_b.shape[:2]
+    grid = torch.stack([ub / Wb * 2 - 1, vb / Hb * 2 - 1], -1)[None]
+    warped = F.grid_sample(image_b.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border",
+                           align_corners=False)[0].permute(1, 2, 0)
+    valid = (z > 1e-6) & (depth_a > 0) & (ub >= 0.5) & (ub <= Wb - 0.5) & (vb >= 0.5) & (vb <= Hb - 0.5)
+    return warped, valid
+
+
+def binocular_loss(depth_a, alpha_a, image_a, K_a, viewmat_a, image_b, K_b, viewmat_b, *,
+                   min_alpha: float = 0.5) -> torch.Tensor | None:
+    """Mean L1 between view a's image and view b's image warped into a through a's rendered
+    depth, over pixels that are covered (alpha > ``min_alpha``) and land inside b.
+    depth_a/alpha_a [H,W]; images [H,W,3]. None when no pixel qualifies."""
+    warped, valid = warp_into(depth_a, K_a, viewmat_a, image_b, K_b, viewmat_b)
+    m = valid & (alpha_a.detach() > min_alpha)
+    if int(m.sum()) < 16:
+        return None
+    return (warped - image_a).abs().mean(-1)[m].mean()
+
+
+def edge_aware_smoothness(depth: torch.Tensor, alpha: torch.Tensor, image: torch.Tensor, *, gamma: float = 10.0,
+                          min_alpha: float = 0.5) -> torch.Tensor | None:
+    """Edge-aware first-order smoothness of ``depth`` [H,W] (divided by its mean where
+    ``alpha`` [H,W] > ``min_alpha``), weighted by ``exp(-gamma |grad image|)`` (image [H,W,3])."""
+    m = alpha.detach() > min_alpha
+    if int(m.sum()) < 16:
+        return None
+    d = depth / depth.detach()[m].mean().clamp_min(1e-6)
+    gx = (image[:, 1:] - image[:, :-1]).abs().mean(-1)
+    gy = (image[1:] - image[:-1]).abs().mean(-1)
+    dx = (d[:, 1:] - d[:, :-1]).abs() * torch.exp(-gamma * gx)
+    dy = (d[1:] - d[:-1]).abs() * torch.exp(-gamma * gy)
+    mx, my = m[:, 1:] & m[:, :-1], m[1:] & m[:-1]
+    return (dx[mx].sum() + dy[my].sum()) / (mx.sum() + my.sum()).clamp_min(1)
+
+
+@torch.no_grad()
+def decay_visible_opacity(opacity_logits: torch.Tensor, visible: torch.Tensor, factor: float) -> None:
+    """In place: opacity <- factor * opacity for the ``visible`` [N] Gaussians (logits [N] or [N,1])."""
+    o = torch.sigmoid(opacity_logits[visible]) * factor
+    opacity_logits[visible] = torch.logit(o.clamp(1e-6, 1 - 1e-6))
+
+
+# ---------------------------------------------------------------------------------- trainer glue
+def partner_index(items: list[dict]) -> dict[int, int]:
+    """For each train item, the item of another camera at the same instant (the stereo partner)."""
+    by_time: dict = {}
+    for i, it in enumerate(items):
+        by_time.setdefault(round(float(it["time"]), 6), []).append(i)
+    out = {}
+    for group in by_time.values():
+        for i in group:
+            others = [j for j in group if items[j]["camera"] != items[i]["camera"]]
+            if others:
+                out[i] = others[0]
+    return out
+
+
+def _binocular(ctx):
+    tr = ctx.trainer
+    if getattr(tr, "_partners", None) is None:
+        tr._partners = partner_index(tr.items)
+    j = tr._partners.get(ctx.item["index"])
+    depth = ctx.meta.get("depths")
+    if j is None or depth is None:
+        return None
+    a, b = ctx.item, tr.items[j]
+    return binocular_loss(depth[0, ..., 0], ctx.alpha[0, ..., 0], a["image"][0], a["K"][0], a["viewmat"][0],
+                          b["image"][0], b["K"][0], b["viewmat"][0])
+
+
+def _depth_smooth(ctx):
+    depth = ctx.meta.get("depths")
+    if depth is None:
+        return None
+    return edge_aware_smoothness(depth[0, ..., 0], ctx.alpha[0, ..., 0], ctx.item["image"][0])
+
+
+def geometry_loss_terms(cfg, LossTerm) -> list:
+    """The enabled geometry terms as ``LossTerm`` (the trainer's class, passed in to keep
+    this module free of the trainer)."""
+    terms = []
+    if getattr(cfg, "lambda_binocular", 0.0) > 0:
+        terms.append(LossTerm("binocular", cfg.lambda_binocular, _binocular))
+    if getattr(cfg, "lambda_depth_smooth", 0.0) > 0:
+        terms.append(LossTerm("depth_smooth", cfg.lambda_depth_smooth, _depth_smooth))
+    return terms
+
+
+def _opacity_decay_hook(factor: float):
+    def hook(trainer, step: int, item: dict, meta: dict) -> None:
+        radii = meta.get("radii")
+        g = trainer.model.gaussians
+        if radii is None or radii.shape[1] != g.num_gaussians:
+            return
+        decay_visible_opacity(g.opacity_logits.data, radii[0] > 0, factor)
+    return hook
+
+
+def geometry_post_step_hooks(cfg) -> list:
+    """Hooks ``(trainer, step, item, meta)`` run after each optimiser step."""
+    hooks = []
+    if 0.0 < getattr(cfg, "opacity_decay", 1.0) < 1.0:
+        hooks.append(_opacity_decay_hook(cfg.opacity_decay))
+    return hooks
+
+
+def step_background(cfg, step: int, seed: int, device) -> torch.Tensor | None:
+    """The background colour [3] of a training step: random with ``random_background``
+    (deterministic in seed and step, so resume equals an uninterrupted run), else None
+    (the model's fixed background)."""
+    if not getattr(cfg, "random_background", False):
+        return None
+    gen = torch.Generator().manual_seed(int(seed) * 7919 + int(step))
+    return torch.rand(3, generator=gen).to(device)

@@ -1,0 +1,135 @@
+"""Geometry terms of issue 14 (engine.geometry_losses): zero when consistent, gradients flow,
+each switch takes part in a run."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from engine.cameras import Intrinsics, View, look_at_c2w
+from engine.train.geometry_losses import (
+    binocular_loss,
+    decay_visible_opacity,
+    edge_aware_smoothness,
+    partner_index,
+    step_background,
+    warp_into,
+)
+
+W, H = 64, 48
+K = Intrinsics(W, H, 60.0, 60.0, W / 2, H / 2)
+_TEX = cv2.GaussianBlur(np.random.default_rng(3).random((400, 400)).astype(np.float32), (0, 0), 1.5)
+_TEX = (_TEX - _TEX.min()) / (_TEX.max() - _TEX.min())
+
+
+def _plane_view(x):
+    view = View(K, look_at_c2w(np.array([x, 0.0, 0.0]), np.array([x, 2.0, 0.0])))
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    # fronto-parallel plane y = 2: planar depth 2 everywhere; texture fixed on the plane
+    px = x + (u + 0.5 - K.cx) / K.fx * 2.0
+    pz = -(v + 0.5 - K.cy) / K.fy * 2.0
+    img = cv2.remap(_TEX, ((px + 2) / 4 * 399).astype(np.float32), ((pz + 2) / 4 * 399).astype(np.float32),
+                    cv2.INTER_LINEAR)
+    t = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
+    return t(np.repeat(img[..., None], 3, -1)), t(view.K), t(view.viewmat)
+
+
+def test_binocular_loss_is_zero_at_the_true_depth_and_trains_a_wrong_one():
+    ia, Ka, Va = _plane_view(-0.05)
+    ib, Kb, Vb = _plane_view(0.05)
+    alpha = torch.ones(H, W)
+    good = binocular_loss(torch.full((H, W), 2.0), alpha, ia, Ka, Va, ib, Kb, Vb)
+    depth = torch.full((H, W), 2.4, requires_grad=True)
+    bad = binocular_loss(depth, alpha, ia, Ka, Va, ib, Kb, Vb)
+    assert float(good) < 0.01 < float(bad.detach())
+    bad.backward()
+    assert depth.grad is not None and depth.grad.abs().sum() > 0
+    # a few gradient steps move a wrong depth towards the truth
+    d = torch.full((H, W), 2.15, requires_grad=True)
+    opt = torch.optim.Adam([d], lr=0.02)
+    for _ in range(25):
+        opt.zero_grad()
+        binocular_loss(d, alpha, ia, Ka, Va, ib, Kb, Vb).backward()
+        opt.step()
+    assert abs(float(d.detach().median()) - 2.0) < 0.07
+    # uncovered pixels do not count
+    assert binocular_loss(torch.full((H, W), 2.0), torch.zeros(H, W), ia, Ka, Va, ib, Kb, Vb) is None
+
+
+def test_warp_marks_pixels_that_leave_the_other_image():
+    ia, Ka, Va = _plane_view(-0.5)
+    ib, Kb, Vb = _plane_view(0.5)
+    _, valid = warp_into(torch.full((H, W), 2.0), Ka, Va, ib, Kb, Vb)
+    # b is 1 m to the right: a's right part is seen by b, its left 30 px fall off b's image
+    assert not valid[:, :25].any() and valid[:, 40:].all()
+
+
+def test_edge_aware_smoothness():
+    flat = torch.full((H, W, 3), 0.5)
+    edge = flat.clone()
+    edge[:, W // 2:] = 1.0
+    alpha = torch.ones(H, W)
+    assert float(edge_aware_smoothness(torch.full((H, W), 3.0), alpha, flat)) == pytest.approx(0.0, abs=1e-7)
+    step = torch.full((H, W), 3.0)
+    step[:, W // 2:] = 4.0
+    step.requires_grad_(True)
+    on_flat = edge_aware_smoothness(step, alpha, flat)
+    on_edge = edge_aware_smoothness(step, alpha, edge)
+    assert float(on_flat.detach()) > 5 * float(on_edge.detach()) > 0
+    on_flat.backward()
+    assert step.grad.abs().sum() > 0
+
+
+def test_opacity_decay_only_touches_visible_gaussians():
+    logits = torch.zeros(5)
+    decay_visible_opacity(logits, torch.tensor([True, False, True, False, False]), 0.9)
+    op = torch.sigmoid(logits)
+    assert torch.allclose(op[[0, 2]], torch.full((2,), 0.45)) and torch.allclose(op[[1, 3, 4]], torch.full((3,), 0.5))
+
+
+def test_background_and_partners():
+    from engine.train.presets import get_preset
+
+    assert step_background(get_preset("fast"), 3, 0, "cpu") is None
+    cfg = get_preset("fast", {"random_background": True})
+    a, b = step_background(cfg, 3, 0, "cpu"), step_background(cfg, 4, 0, "cpu")
+    assert a.shape == (3,) and torch.equal(a, step_background(cfg, 3, 0, "cpu")) and not torch.equal(a, b)
+    items = [{"time": 0.0, "camera": "rgb0"}, {"time": 0.0, "camera": "rgb1"}, {"time": 0.1, "camera": "rgb0"}]
+    assert partner_index(items) == {0: 1, 1: 0}
+
+
+def test_every_switch_takes_part_in_a_run(tmp_path):
+    from engine.io.capture import load_capture
+    from engine.train import train
+    from engine.train.losses import default_loss_terms
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
+    from tools.synthetic import write_synthetic_capture
+
+    on = {"lambda_binocular": 0.5, "lambda_depth_smooth": 0.1, "opacity_decay": 0.99, "random_background": True,
+          "lambda_depth": 0.1, "init": "stereo", "init_backdrop": 0.2}
+    names = [t.name for t in default_loss_terms(get_preset("fast", on))]
+    assert {"binocular", "depth_smooth", "stereo_depth"} <= set(names)
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
+    tr = Trainer(cap, get_preset("fast", {**on, "iterations": 4}), device="cpu", rgb_only=True)
+    tr.init_model()
+    assert tr.init_info["method"] == "stereo" and tr.init_info["backdrop"] > 0
+    assert any("stereo_depth" in it for it in tr.items)
+    out = tr.step(0)
+    assert {"binocular", "depth_smooth", "stereo_depth"} <= set(out["losses"])
+    assert len(tr.post_step_hooks) == 1  # opacity decay, applied to what the step's view saw
+    g = tr.model.gaussians
+    n = g.num_gaussians
+    radii = torch.zeros(1, n, dtype=torch.int32)
+    radii[0, : n // 2] = 3
+    before = torch.sigmoid(g.opacity_logits.detach()).clone()
+    tr.post_step_hooks[0](tr, 1, tr.items[0], {"radii": radii})
+    after = torch.sigmoid(g.opacity_logits.detach())
+    assert torch.allclose(after[: n // 2], before[: n // 2] * 0.99, atol=1e-5)
+    assert torch.equal(after[n // 2:], before[n // 2:])
+    train(cap, tmp_path / "run", overrides={**on, "iterations": 3}, rgb_only=True)
+    from engine.io.checkpoint import read_run_json
+
+    info = read_run_json(tmp_path / "run")
+    assert info["config"]["lambda_binocular"] == 0.5 and info["init"]["backdrop"] > 0
