@@ -148,6 +148,7 @@ class DeformationField(nn.Module):
         self.fine_encoder: nn.Module | None = None  # Eq. 10 hook (spike branch)
         self.fine_spec: dict | None = None  # spec of a checkpoint's spike fine encoder
         self.pending_fine_state: dict = {}  # fine_encoder weights found in a checkpoint (see engine.model)
+        self.pending_fine_windows: dict | None = None  # its stored spike windows (SpikeWindowCache.state)
 
     # ---- coordinates ------------------------------------------------------------------
     def normalize_xyz(self, xyz: torch.Tensor) -> torch.Tensor:
@@ -233,6 +234,11 @@ class DeformationField(nn.Module):
         from .spike_guidance import SpikeFineEncoder
 
         enc = SpikeFineEncoder(self.feature_dim, self.fine_spec).to(self.bounds_min.device)
+        if self.pending_fine_windows is not None:  # stored spike windows: no capture needed
+            from .spike_features import SpikeWindowCache
+
+            enc.attach(SpikeWindowCache.from_state(self.pending_fine_windows, device=self.bounds_min.device))
+            self.pending_fine_windows = None
         if self.pending_fine_state:
             enc.load_state_dict(self.pending_fine_state)
             self.pending_fine_state = {}

@@ -131,7 +131,8 @@ class Model4D(nn.Module):
         return {
             "gaussians": self.gaussians.state(),
             "deformation": None if self.deformation is None else {
-                "config": self.deformation.config(), "state_dict": self.deformation.state_dict()},
+                "config": self.deformation.config(), "state_dict": self.deformation.state_dict(),
+                "fine_windows": _fine_windows(self.deformation)},
             "use_deformation": self.use_deformation,
             "background": list(self.background),
             "near_plane": self.near_plane,
@@ -150,6 +151,7 @@ class Model4D(nn.Module):
             # wait in ``pending_fine_state`` for it
             deform.pending_fine_state = {k[len("fine_encoder."):]: sd.pop(k) for k in list(sd)
                                          if k.startswith("fine_encoder.")}
+            deform.pending_fine_windows = state["deformation"].get("fine_windows")
             deform.load_state_dict(sd)
             deform.to(device)
         m = cls(g, deform, background=state.get("background", (0, 0, 0)),
@@ -160,6 +162,14 @@ class Model4D(nn.Module):
         pm = state.get("prior_mask")
         m.prior_mask = None if pm is None else pm.to(device)
         return m
+
+
+def _fine_windows(field) -> dict | None:
+    """The spike fine branch's windows (issue 11: a run renders without its capture)."""
+    enc = getattr(field, "fine_encoder", None)
+    if enc is not None and hasattr(enc, "windows_state"):
+        return enc.windows_state()
+    return getattr(field, "pending_fine_windows", None)
 
 
 def _cpu_or_none(t):
