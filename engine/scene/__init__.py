@@ -1,0 +1,1 @@
+"""Scene representation: Gaussians, motion (deformation field, trajectories), the 4D model."""
