@@ -67,6 +67,14 @@ class TrainConfig:
     time_smooth_weight: float = 1e-3  # second difference along t of the time planes
     time_l1_weight: float = 1e-4      # time planes close to 1 (static by default)
 
+    # ---- motion representation (issue 11; engine.scene.trajectory) --------------------------
+    motion: str = "hexplane"          # hexplane | trajectory | trajectory+hexplane (HexPlane as a residual)
+    lr_traj: float = 1.6e-3           # x extent: per-Gaussian trajectory control points, decays to lr_traj_final
+    lr_traj_final: float = 1.6e-5
+    lr_traj_quats: float = 1e-3       # quaternion residual curve
+    traj_carry: str = "velocity"      # newly admitted RGB instants start from: velocity | hold (time curriculum)
+    traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
+
     # ---- loss -------------------------------------------------------------------------
     lambda_dssim: float = 0.2
     lambda_block: float = 0.5         # L1 of 4x4 average-pooled images (paper Eq. 20 block loss)

@@ -52,7 +52,7 @@ from .errors import RunError
 from .freezing import TrainFreezer
 from .gaussians import GaussianModel
 from .init_points import initial_points, stereo_depth_priors
-from .model import Model4D, default_device, near_plane_for_extent, view_tensors
+from .model import TRAJ_MEANS, TRAJ_QUATS, Model4D, default_device, near_plane_for_extent, view_tensors
 from .presets import TrainConfig, get_preset
 
 # ---------------------------------------------------------------------------------- losses
@@ -147,6 +147,24 @@ def _deform_reg(ctx: StepContext):
     return d.regularization(cfg.tv_weight, smooth, cfg.time_l1_weight)
 
 
+def _traj_reg(ctx: StepContext):
+    """Mean squared inner-point residual of the trajectories / extent^2 (engine.scene.trajectory):
+    with zero residuals the in-between motion is the Catmull-Rom curve through the RGB
+    instants; only the between-frame losses have a reason to bend it."""
+    from .scene.trajectory import inner_residuals
+
+    m = ctx.trainer.model
+    if m.trajectory is None or not m.use_deformation:
+        return None
+    d = inner_residuals(getattr(m.gaussians, TRAJ_MEANS))
+    if d.numel() == 0:
+        return None
+    return (d ** 2).sum(-1).mean() / ctx.trainer.extent ** 2
+
+
+MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")
+
+
 def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
     terms = [LossTerm("l1", 1.0 - cfg.lambda_dssim, _l1)]
     if cfg.lambda_dssim > 0:
@@ -156,6 +174,8 @@ def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
     if cfg.lambda_depth > 0:
         terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
     terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
+    if "trajectory" in getattr(cfg, "motion", "hexplane") and cfg.traj_inner_weight > 0:
+        terms.append(LossTerm("traj_reg", cfg.traj_inner_weight, _traj_reg, stages=("deform",)))
     return terms
 
 
@@ -347,7 +367,17 @@ class Trainer:
         g._replace = _replace
 
     def start_deformation(self) -> None:
-        """Create the deformation field around the current canonical Gaussians."""
+        """Start the motion of ``cfg.motion``: per-Gaussian trajectories (issue 11,
+        engine.scene.trajectory) and / or the deformation field around the current canonical
+        Gaussians (with both, the field is a residual on top of the trajectories)."""
+        motion = self.cfg.motion
+        if motion not in MOTIONS:
+            raise ValueError(f"unknown motion representation {motion!r}; choose one of {', '.join(MOTIONS)}")
+        self.model.use_deformation = True
+        if "trajectory" in motion:
+            self.model.add_trajectories(self.frame_times, self.cfg.lr_traj * self.extent, self.cfg.lr_traj_quats)
+        if "hexplane" not in motion:
+            return
         g = self.model.gaussians
         means = g.means.detach().cpu().numpy()
         lo, hi = robust_bounds(means)
@@ -396,6 +426,16 @@ class Trainer:
         self._carried_to = t_prev
         if last == -math.inf:
             return
+        if self.model.trajectory is not None:  # later knots start from the motion so far
+            from .scene.trajectory import extrapolate_junctions
+
+            knots = self.model.trajectory["knots"]
+            li = int(np.argmin([abs(k - last) for k in knots]))
+            g = self.model.gaussians
+            extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=self.cfg.traj_carry)
+            extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")
+        if d is None:
+            return
         u = (d.normalize_time(last) + 1.0) / 2.0
         with torch.no_grad():
             for p in d.grid.temporal:
@@ -412,9 +452,14 @@ class Trainer:
 
     def _update_lrs(self, step: int) -> None:
         self.model.gaussians.update_learning_rate(step / max(1, self.total_steps - 1))
+        s0 = self.static_steps
+        p = min(1.0, max(0.0, (step - s0) / max(1, self.total_steps - s0 - 1)))
+        if self.model.trajectory is not None:  # decays over the deformation stage, like the field
+            for grp in self.model.gaussians.optimizer.param_groups:
+                if grp["name"] == TRAJ_MEANS:
+                    grp["lr"] = self.extent * math.exp(math.log(self.cfg.lr_traj) * (1 - p)
+                                                       + math.log(self.cfg.lr_traj_final) * p)
         if self.deform_opt is not None:
-            s0 = self.static_steps
-            p = min(1.0, max(0.0, (step - s0) / max(1, self.total_steps - s0 - 1)))
             for grp in self.deform_opt.param_groups:
                 if grp["name"] == "grid":
                     grp["lr"] = math.exp(math.log(self.cfg.lr_grid) * (1 - p) + math.log(self.cfg.lr_grid_final) * p)
@@ -427,7 +472,7 @@ class Trainer:
         model = self.model
         g = model.gaussians
         stage = self.stage_of(step)
-        if stage == "deform" and model.deformation is None:
+        if stage == "deform" and not model.use_deformation:
             self.start_deformation()
         if cfg.sh_degree > 0 and cfg.sh_step_fraction > 0:
             want = min(cfg.sh_degree, int(step / max(1, cfg.sh_step_fraction * self.total_steps)))
