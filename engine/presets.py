@@ -72,7 +72,7 @@ class TrainConfig:
     lr_traj: float = 1.6e-3           # x extent: per-Gaussian trajectory control points, decays to lr_traj_final
     lr_traj_final: float = 1.6e-5
     lr_traj_quats: float = 1e-3       # quaternion residual curve
-    traj_carry: str = "velocity"      # newly admitted RGB instants start from: velocity | hold (time curriculum)
+    traj_carry: str = "velocity"      # newly admitted RGB instants start from: flow (stereo + optical flow) | velocity | hold
     traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
 
     # ---- loss -------------------------------------------------------------------------

@@ -287,6 +287,7 @@ class Trainer:
         self.extent = 1.0
         self.last_losses: dict = {}
         self._carried_to = -math.inf  # latest frame time whose motion was carried forward
+        self.carry_info: list[dict] = []  # trajectories carried by scene flow (traj_carry="flow")
         # skipping (issue 6): owned by the trainer, checkpointed in state()
         self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.freeze_static else None
         self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.early_stop else None
@@ -432,8 +433,11 @@ class Trainer:
             knots = self.model.trajectory["knots"]
             li = int(np.argmin([abs(k - last) for k in knots]))
             g = self.model.gaussians
-            extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=self.cfg.traj_carry)
+            mode = "velocity" if self.cfg.traj_carry == "flow" else self.cfg.traj_carry
+            extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=mode)
             extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")
+            if self.cfg.traj_carry == "flow" and li + 1 < len(knots):
+                self.carry_info.append(self._carry_by_flow(knots, li, li + 1))
         if d is None:
             return
         u = (d.normalize_time(last) + 1.0) / 2.0
@@ -443,6 +447,45 @@ class Trainer:
                 c = min(T - 1, int(math.ceil(u * (T - 1) - 1e-6)))
                 if c < T - 1:
                     p[:, :, c + 1:, :] = p[:, :, c:c + 1, :]
+
+    # ---- trajectories: scene flow from per-instant stereo + optical flow (issue 11) -----------
+    def _carry_by_flow(self, knots, i: int, j: int) -> dict:
+        """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i``
+        in a train camera along that camera's optical flow, lifted by the stereo depth at
+        ``knots[j]`` (engine.geometry.scene_flow); later knots hold it. Returns counts."""
+        from .geometry.scene_flow import carry_by_flow, image_flow
+        from .init_points import stereo_depth_priors
+
+        frames = train_frames(self.capture)
+        if getattr(self, "_stereo_priors", None) is None:
+            self._stereo_priors = stereo_depth_priors(self.capture, frames)
+        pri = self._stereo_priors
+        g = self.model.gaussians
+        with torch.no_grad():
+            pos_i = self.model.attributes(knots[i])["means"].detach().cpu().numpy()
+        todo = np.ones(len(pos_i), dtype=bool)
+        delta = np.zeros_like(pos_i)
+        by_cam: dict = {}
+        for f in frames:
+            by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
+        for cam, at in by_cam.items():
+            fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
+            if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
+                continue
+            flow = image_flow(fa.load_rgb(), fb.load_rgb())
+            new, ok = carry_by_flow(pos_i, self.capture.view(fa), flow, *pri[id(fa)], *pri[id(fb)])
+            ok &= todo
+            delta[ok] = new[ok] - pos_i[ok]
+            todo &= ~ok
+        carried = ~todo
+        if carried.any():
+            tm = getattr(g, TRAJ_MEANS).data
+            idx = torch.from_numpy(np.nonzero(carried)[0]).to(tm.device)
+            d = torch.from_numpy(delta[carried]).to(tm)
+            for k in range(j, len(knots)):
+                tm[idx, 3 * k] = tm[idx, 3 * i] + d
+        return {"from": float(knots[i]), "to": float(knots[j]), "carried": int(carried.sum()),
+                "total": int(len(carried))}
 
     def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
         """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
@@ -985,6 +1028,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     train_seconds = prior_seconds + time.perf_counter() - t_start
     snapshot(step, status, train_seconds)
     skips = trainer.skip_summary()
+    if trainer.carry_info:  # trajectories carried by scene flow (issue 11)
+        update_run_json(run_dir, trajectory_carry=trainer.carry_info)
     summary = {
         "status": status, "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
         "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),

@@ -102,16 +102,26 @@ _TINY = {"iterations": 12, "static_fraction": 0.25, "init_max_points": 300, "ini
          "time_curriculum": 0.5}
 
 
-@pytest.mark.parametrize("motion", ["trajectory", "trajectory+hexplane"])
-def test_trainer_trains_trajectories_end_to_end(demo_capture, tmp_path, motion):
+@pytest.mark.slow  # ~1 min each on a loaded 2-core machine (stereo + flow for every instant)
+@pytest.mark.parametrize("motion,carry", [("trajectory", "flow"), ("trajectory+hexplane", "velocity")])
+def test_trainer_trains_trajectories_end_to_end(demo_capture, tmp_path, motion, carry):
     """Densification during the deformation stage, the time curriculum carrying the motion
-    forward, checkpoint + load_run + export sampling; rgb-only keeps it quick."""
+    forward (scene flow or constant velocity), checkpoint + load_run + export sampling;
+    rgb-only keeps it quick."""
+    import json
+
     from engine.model import load_run
     from engine.train import train
 
-    over = {**_TINY, "motion": motion}
+    over = {**_TINY, "motion": motion, "traj_carry": carry}
     summary = train(demo_capture, tmp_path / "run", preset="fast", overrides=over, rgb_only=True, resume=False)
     assert summary["status"] == "finished" and summary["step"] == 12
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    if carry == "flow":  # one record per admitted RGB instant; the demo's moving objects get carried
+        rec = info["trajectory_carry"]
+        assert len(rec) >= 2 and all(r["total"] > 0 for r in rec) and sum(r["carried"] for r in rec) > 0
+    else:
+        assert "trajectory_carry" not in info
     scene = load_run(tmp_path / "run")
     m = scene.model
     assert m.trajectory is not None and len(m.trajectory["knots"]) == 7

@@ -1,0 +1,1 @@
+"""Geometry from the calibrated RGB pair: initial points, stereo, scene flow."""

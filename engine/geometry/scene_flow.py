@@ -1,0 +1,74 @@
+"""Scene flow of Gaussians between two RGB instants: 2D flow + per-instant stereo depth.
+
+The time curriculum admits RGB instants in order; a Gaussian on a fast object (about its
+own size per frame, issue 11) that starts the next instant where it was has no overlap
+with its new image, so photometric gradients cannot find it. Both cameras see every RGB
+instant, so stereo depth pins *where* the surface is at each instant and optical flow
+says *which* pixel went where. :func:`carry_by_flow` moves each Gaussian that is the
+visible surface at ``t_a`` (its depth agrees with the confident stereo depth at its pixel)
+along the flow to ``t_b`` and lifts it with the stereo depth there::
+
+    x_b = backproject(view, uv_a + flow_ab(uv_a), depth_b(uv_a + flow_ab(uv_a)))
+
+Gaussians that are hidden, outside the image, on unconfident depth or that do not move
+(|flow| below ``min_flow_px``) are left to the caller's fallback (constant velocity).
+Shapes: positions [N, 3] (world), images [H, W, 3] float, depth maps [H, W] (camera z,
+the stereo's planar depth) with bool confidence masks [H, W].
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..cameras import View, project_points
+from ..interpolation import lk_flow
+
+__all__ = ["image_flow", "carry_by_flow", "backproject_pixels"]
+
+
+def image_flow(img_a: np.ndarray, img_b: np.ndarray) -> np.ndarray:
+    """Dense flow [H, W, 2] (x, y pixels) with ``a(p) ~ b(p + flow(p))`` (engine.interpolation.lk_flow)."""
+    a = torch.as_tensor(np.asarray(img_a, np.float32)[..., :3]).permute(2, 0, 1)[None]
+    b = torch.as_tensor(np.asarray(img_b, np.float32)[..., :3]).permute(2, 0, 1)[None]
+    return lk_flow(a, b)[0].permute(1, 2, 0).numpy()
+
+
+def backproject_pixels(view: View, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points [N, 3] of pixel coordinates ``uv`` [N, 2] (corner at (0, 0)) at camera
+    z ``depth`` [N]: the inverse of :func:`engine.cameras.project_points`."""
+    k = view.intrinsics
+    z = np.asarray(depth, np.float64)
+    cam = np.stack([(uv[:, 0] - k.cx) / k.fx * z, (uv[:, 1] - k.cy) / k.fy * z, z, np.ones_like(z)], 1)
+    return (np.linalg.inv(view.viewmat) @ cam.T).T[:, :3]
+
+
+def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    ui = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 1)
+    vi = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
+    return img[vi, ui]
+
+
+def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_a: np.ndarray, ok_a: np.ndarray,
+                  depth_b: np.ndarray, ok_b: np.ndarray, *, depth_tol: float = 0.05,
+                  min_flow_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """(positions at ``t_b`` [N, 3], carried bool [N]) for Gaussians at ``positions`` (``t_a``)
+    seen by the static camera ``view``; rows not carried are returned unchanged."""
+    pos = np.asarray(positions, np.float64)
+    uv, z = project_points(view, pos)
+    h, w = depth_a.shape
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    uv_c = np.where(inside[:, None], uv, 0.0)
+    da = _sample(depth_a, uv_c)
+    surface = inside & _sample(ok_a, uv_c) & (np.abs(z - da) <= depth_tol * np.maximum(da, 1e-9))
+    f = _sample(flow_ab, uv_c)
+    uv_b = uv_c + f
+    inside_b = (uv_b[:, 0] >= 0) & (uv_b[:, 0] < w) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] < h)
+    uv_b = np.where(inside_b[:, None], uv_b, 0.0)
+    db = _sample(depth_b, uv_b)
+    carried = surface & inside_b & _sample(ok_b, uv_b) & (np.linalg.norm(f, axis=1) >= min_flow_px)
+    out = pos.copy()
+    if carried.any():
+        # keep the Gaussian's offset from the surface along the ray (it sat at z, the surface at da)
+        out[carried] = backproject_pixels(view, uv_b[carried], db[carried] + (z - da)[carried])
+    return out.astype(np.float32), carried
