@@ -74,6 +74,8 @@ class TrainConfig:
     lr_traj_quats: float = 1e-3       # quaternion residual curve
     traj_carry: str = "velocity"      # newly admitted RGB instants start from: flow (stereo + optical flow) | velocity | hold
     traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
+    rigidity_weight: float = 0.0      # Luiten et al. local rigidity (rigid + rot + iso over kNN) / extent; 0: off
+    rigidity_k: int = 8               # neighbours of the rigidity prior
 
     # ---- loss -------------------------------------------------------------------------
     lambda_dssim: float = 0.2

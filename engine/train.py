@@ -162,6 +162,22 @@ def _traj_reg(ctx: StepContext):
     return (d ** 2).sum(-1).mean() / ctx.trainer.extent ** 2
 
 
+def _rigidity(ctx: StepContext):
+    """Luiten et al.'s local rigidity (rigidity + rotation similarity + isometry over kNN,
+    engine.scene.rigidity) between the canonical Gaussians and the render's instant; the
+    neighbours are recomputed when the Gaussians change (densification) or every 100 steps."""
+    from .scene.rigidity import knn_neighbours, rigidity_losses
+
+    tr, g = ctx.trainer, ctx.trainer.model.gaussians
+    cache = getattr(tr, "_rigidity_nbrs", None)
+    if cache is None or cache[0] != g.num_gaussians or ctx.step - cache[1] >= 100:
+        nbr, w = knn_neighbours(g.means.detach(), int(tr.cfg.rigidity_k))
+        cache = tr._rigidity_nbrs = (g.num_gaussians, ctx.step, nbr, w)
+    parts = rigidity_losses(g.means.detach(), g.quats.detach(), ctx.attrs["means"], ctx.attrs["quats"],
+                            cache[2], cache[3])
+    return (parts["rigid"] + parts["rot"] + parts["iso"]) / tr.extent
+
+
 MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")
 
 
@@ -174,6 +190,8 @@ def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
     if cfg.lambda_depth > 0:
         terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
     terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
+    if cfg.rigidity_weight > 0:
+        terms.append(LossTerm("rigidity", cfg.rigidity_weight, _rigidity, stages=("deform",)))
     if "trajectory" in getattr(cfg, "motion", "hexplane") and cfg.traj_inner_weight > 0:
         terms.append(LossTerm("traj_reg", cfg.traj_inner_weight, _traj_reg, stages=("deform",)))
     return terms

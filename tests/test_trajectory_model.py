@@ -148,3 +148,21 @@ def test_unknown_motion_is_an_error(demo_capture, tmp_path):
     with pytest.raises(ValueError, match="motion"):
         train(demo_capture, tmp_path / "run", preset="fast", rgb_only=True, resume=False,
               overrides={**_TINY, "motion": "splines"})
+
+
+def test_rigidity_term_in_a_training_step(demo_capture):
+    """The rigidity switch adds a finite loss term that reaches the trajectories."""
+    from engine.train import Trainer
+
+    cfg = get_preset("fast", {**_TINY, "motion": "trajectory", "traj_carry": "velocity", "rigidity_weight": 1.0,
+                              "densify_from": 2.0, "densify_until": 2.0, "static_fraction": 0.1})
+    tr = Trainer(__import__("engine.capture", fromlist=["x"]).load_capture(demo_capture), cfg, device="cpu",
+                 rgb_only=True)
+    assert "rigidity" in {t.name for t in tr.loss_terms}
+    tr.init_model()
+    seen = []
+    for step in range(4):
+        out = tr.step(step)
+        seen.append(out["losses"].get("rigidity"))
+    vals = [v for v in seen if v is not None]
+    assert vals and all(np.isfinite(v) for v in vals)
