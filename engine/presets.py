@@ -73,6 +73,7 @@ class TrainConfig:
     lr_traj_final: float = 1.6e-5
     lr_traj_quats: float = 1e-3       # quaternion residual curve
     traj_carry: str = "velocity"      # newly admitted RGB instants start from: flow (stereo + optical flow) | velocity | hold
+    traj_carry_hidden: float = 0.05   # x extent: with traj_carry=flow, hidden Gaussians take the motion of the nearest carried / still one within it (0: off)
     traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
     rigidity_weight: float = 0.0      # Luiten et al. local rigidity (rigid + rot + iso over kNN) / extent; 0: off
     rigidity_k: int = 8               # neighbours of the rigidity prior

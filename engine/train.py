@@ -471,7 +471,7 @@ class Trainer:
         """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i``
         in a train camera along that camera's optical flow, lifted by the stereo depth at
         ``knots[j]`` (engine.geometry.scene_flow); later knots hold it. Returns counts."""
-        from .geometry.scene_flow import carry_by_flow, image_flow
+        from .geometry.scene_flow import carry_by_flow, image_flow, propagate_to_hidden
         from .init_points import stereo_depth_priors
 
         frames = train_frames(self.capture)
@@ -482,6 +482,7 @@ class Trainer:
         with torch.no_grad():
             pos_i = self.model.attributes(knots[i])["means"].detach().cpu().numpy()
         todo = np.ones(len(pos_i), dtype=bool)
+        still = np.zeros(len(pos_i), dtype=bool)
         delta = np.zeros_like(pos_i)
         by_cam: dict = {}
         for f in frames:
@@ -491,10 +492,17 @@ class Trainer:
             if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
                 continue
             flow = image_flow(fa.load_rgb(), fb.load_rgb())
-            new, ok = carry_by_flow(pos_i, self.capture.view(fa), flow, *pri[id(fa)], *pri[id(fb)])
+            new, ok, st = carry_by_flow(pos_i, self.capture.view(fa), flow, *pri[id(fa)], *pri[id(fb)],
+                                        return_still=True)
             ok &= todo
             delta[ok] = new[ok] - pos_i[ok]
             todo &= ~ok
+            still |= st
+        n_flow = int((~todo).sum())
+        if self.cfg.traj_carry_hidden > 0:  # hidden Gaussians follow their nearest decided neighbour
+            delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still,
+                                               self.cfg.traj_carry_hidden * self.extent)
+            todo &= ~(taken & (np.abs(delta).sum(1) > 0))
         carried = ~todo
         if carried.any():
             tm = getattr(g, TRAJ_MEANS).data
@@ -503,7 +511,7 @@ class Trainer:
             for k in range(j, len(knots)):
                 tm[idx, 3 * k] = tm[idx, 3 * i] + d
         return {"from": float(knots[i]), "to": float(knots[j]), "carried": int(carried.sum()),
-                "total": int(len(carried))}
+                "by_flow": n_flow, "total": int(len(carried))}
 
     def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
         """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""

@@ -134,8 +134,11 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
             continue
         w = np.concatenate(a["w"])
         mean = lambda v: float((np.concatenate(v) * w).sum() / w.sum())  # noqa: E731
+        med = lambda v: float(np.median(np.concatenate(v)))  # noqa: E731 (robust to a few strays)
         out[name] = {"ray_mm": 1000 * mean(a["ray"]), "plane_mm": 1000 * mean(a["plane"]),
-                     "plane_px": mean(a["px"]), "gaussians": int((owner == k).sum()), "instants": len(instants)}
+                     "plane_px": mean(a["px"]), "ray_mm_median": 1000 * med(a["ray"]),
+                     "plane_mm_median": 1000 * med(a["plane"]), "plane_px_median": med(a["px"]),
+                     "gaussians": int((owner == k).sum()), "instants": len(instants)}
     return out
 
 
@@ -170,8 +173,10 @@ def main(argv=None) -> int:
         res[run] = r
         for name, v in r.items():
             if v.get("gaussians"):
-                print(f"{run} {name}: along spike ray {v['ray_mm']:.1f} mm, image plane {v['plane_mm']:.1f} mm "
-                      f"= {v['plane_px']:.2f} spike px ({v['gaussians']} Gaussians, {v['instants']} instants)")
+                print(f"{run} {name}: along spike ray {v['ray_mm']:.1f} mm (median {v['ray_mm_median']:.1f}), "
+                      f"image plane {v['plane_mm']:.1f} mm (median {v['plane_mm_median']:.1f}) = {v['plane_px']:.2f} "
+                      f"spike px (median {v['plane_px_median']:.2f}); {v['gaussians']} Gaussians, "
+                      f"{v['instants']} instants")
             else:
                 print(f"{run} {name}: no Gaussians on the object")
     if args.json:

@@ -51,3 +51,17 @@ def test_image_flow_finds_a_shift():
     f = image_flow(a, b)
     assert f.shape == (64, 80, 2)
     assert abs(float(np.median(f[8:-8, 8:-8, 0])) - 3.0) < 0.5 and abs(float(np.median(f[8:-8, 8:-8, 1]))) < 0.5
+
+
+def test_hidden_gaussians_follow_their_nearest_decided_neighbour():
+    from engine.geometry.scene_flow import propagate_to_hidden
+
+    pos = np.array([[0.0, 0, 0], [0.01, 0, 0], [1.0, 0, 0], [0.02, 0, 0], [5.0, 0, 0]])
+    delta = np.zeros((5, 3), np.float32)
+    delta[0] = [0.1, 0, 0]  # carried by flow
+    decided = np.array([True, False, True, False, False])  # 2: a still surface (delta 0)
+    out, taken = propagate_to_hidden(pos, delta, decided, max_dist=0.5)
+    np.testing.assert_allclose(out[1], [0.1, 0, 0])
+    np.testing.assert_allclose(out[3], [0.1, 0, 0])
+    assert taken.tolist() == [False, True, False, True, False]  # 4 is too far from anything decided
+    np.testing.assert_allclose(out[4], 0.0)

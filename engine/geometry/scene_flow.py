@@ -23,7 +23,7 @@ import torch
 from ..cameras import View, project_points
 from ..interpolation import lk_flow
 
-__all__ = ["image_flow", "carry_by_flow", "backproject_pixels"]
+__all__ = ["image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden"]
 
 
 def image_flow(img_a: np.ndarray, img_b: np.ndarray) -> np.ndarray:
@@ -51,9 +51,10 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_a: np.ndarray, ok_a: np.ndarray,
                   depth_b: np.ndarray, ok_b: np.ndarray, *, depth_tol: float = 0.05,
-                  min_flow_px: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                  min_flow_px: float = 0.5, return_still: bool = False):
     """(positions at ``t_b`` [N, 3], carried bool [N]) for Gaussians at ``positions`` (``t_a``)
-    seen by the static camera ``view``; rows not carried are returned unchanged."""
+    seen by the static camera ``view``; rows not carried are returned unchanged. With
+    ``return_still`` also the bool [N] of visible surface Gaussians that do not move."""
     pos = np.asarray(positions, np.float64)
     uv, z = project_points(view, pos)
     h, w = depth_a.shape
@@ -66,9 +67,36 @@ def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_
     inside_b = (uv_b[:, 0] >= 0) & (uv_b[:, 0] < w) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] < h)
     uv_b = np.where(inside_b[:, None], uv_b, 0.0)
     db = _sample(depth_b, uv_b)
-    carried = surface & inside_b & _sample(ok_b, uv_b) & (np.linalg.norm(f, axis=1) >= min_flow_px)
+    moving = np.linalg.norm(f, axis=1) >= min_flow_px
+    carried = surface & inside_b & _sample(ok_b, uv_b) & moving
     out = pos.copy()
     if carried.any():
         # keep the Gaussian's offset from the surface along the ray (it sat at z, the surface at da)
         out[carried] = backproject_pixels(view, uv_b[carried], db[carried] + (z - da)[carried])
+    if return_still:
+        return out.astype(np.float32), carried, surface & ~moving
     return out.astype(np.float32), carried
+
+
+@torch.no_grad()
+def propagate_to_hidden(positions: np.ndarray, delta: np.ndarray, decided: np.ndarray, max_dist: float,
+                        chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """Give each undecided Gaussian (hidden at ``t_a``: inside or behind a moving object)
+    the displacement of its nearest decided one (carried, or a still visible surface) within
+    ``max_dist``: what lies under a surface moves with it, instead of staying behind as
+    specks (measured on the novel scene's ball, issue 11). Returns (delta [N, 3], taken [N])."""
+    pos = torch.as_tensor(np.asarray(positions, np.float32))
+    out = np.asarray(delta, np.float32).copy()
+    taken = np.zeros(len(pos), dtype=bool)
+    src = np.nonzero(decided)[0]
+    dst = np.nonzero(~decided)[0]
+    if len(src) == 0 or len(dst) == 0:
+        return out, taken
+    ps = pos[torch.from_numpy(src)]
+    for s in range(0, len(dst), chunk):
+        idx = dst[s:s + chunk]
+        d, j = torch.cdist(pos[torch.from_numpy(idx)], ps).min(dim=1)
+        ok = (d <= max_dist).numpy()
+        out[idx[ok]] = out[src[j.numpy()[ok]]]
+        taken[idx[ok]] = True
+    return out, taken
