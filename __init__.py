@@ -7,13 +7,12 @@ the operators.
 """
 from __future__ import annotations
 
-import os
+# First, before anything imports torch: engine/__init__.py (numpy only) sets OMP_WAIT_POLICY
+# so that torch's and numba's OpenMP pools do not busy-wait against each other.
+from . import engine  # noqa: F401
 
-# Before anything imports torch: keep torch's and numba's OpenMP pools from busy-waiting
-# against each other (see engine/__init__.py).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-from . import bt4d_addon, operators  # noqa: E402
+# isort: split
+from . import bt4d_addon, operators
 
 
 def register():

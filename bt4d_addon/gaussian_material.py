@@ -20,15 +20,15 @@ instancer attributes ``bt4d_color`` / ``bt4d_opacity``.
 """
 from __future__ import annotations
 
+import bpy
+
+from .attributes import COLOR, OPACITY
+
 MATERIAL_NAME = "BT4D Gaussian"
 ALPHA_MAX = 0.99  # the engine's (3DGS) alpha cap
 
 
 def ensure_material():
-    import bpy
-
-    from .gaussian_nodes import ATTR_COLOR, ATTR_OPACITY
-
     mat = bpy.data.materials.get(MATERIAL_NAME)
     if mat is not None and mat.get("bt4d_version") == 1:
         return mat
@@ -81,8 +81,8 @@ def ensure_material():
     d2 = math("MAXIMUM", math("SUBTRACT", oo, q, (-300, 100)), 0.0, (-150, 100))
     g = math("EXPONENT", math("MULTIPLY", d2, -0.5, (0, 100)), None, (150, 100))
 
-    opac = node("ShaderNodeAttribute", (-150, -150), attribute_type="INSTANCER", attribute_name=ATTR_OPACITY)
-    color = node("ShaderNodeAttribute", (-150, -400), attribute_type="INSTANCER", attribute_name=ATTR_COLOR)
+    opac = node("ShaderNodeAttribute", (-150, -150), attribute_type="INSTANCER", attribute_name=OPACITY.name)
+    color = node("ShaderNodeAttribute", (-150, -400), attribute_type="INSTANCER", attribute_name=COLOR.name)
     a = math("MULTIPLY", g, opac.outputs["Fac"], (300, 50))
     a = math("MINIMUM", a, ALPHA_MAX, (450, 50))
     front = math("SUBTRACT", 1.0, geom.outputs["Backfacing"], (450, -100))

@@ -2,8 +2,9 @@
 
 Storage ("sample cache")
     The model is sampled at K capture times ``t_k = t0 + k (t1 - t0) / (K - 1)`` and all
-    samples are stored in ONE mesh of ``N * K`` vertices (vertex ``gid + k*N`` is Gaussian
-    ``gid`` at ``t_k``), packed in the .blend like any mesh. Point attributes:
+    samples (``Scene4D.sample``, the engine) are stored in ONE mesh of ``N * K`` vertices
+    (vertex ``gid + k*N`` is Gaussian ``gid`` at ``t_k``), packed in the .blend like any
+    mesh. Point attributes (names in ``attributes.py``):
 
     ============== ============ =====================================================
     position       FLOAT_VECTOR centre (world units)
@@ -33,9 +34,13 @@ time is slow motion.
 """
 from __future__ import annotations
 
-import math
-
+import bpy
 import numpy as np
+from bpy_extras import anim_utils
+
+from . import attributes as A
+from . import gaussian_material
+from .engine_bridge import srgb_to_linear
 
 GROUP_NAME = "BT4D Gaussians"
 MODIFIER_NAME = "BT4D Gaussians"
@@ -46,11 +51,6 @@ VIEWPORT_SUBDIVISIONS = 1
 # (not only the vertices) at ~3 sigma.
 SIGMA_CUTOFF = 3.0
 ELLIPSOID_RADIUS = SIGMA_CUTOFF / 0.94
-
-ATTR_ROT = "bt4d_rot"
-ATTR_SCALE = "bt4d_scale"
-ATTR_OPACITY = "bt4d_opacity"
-ATTR_COLOR = "bt4d_color"
 
 # interface: (name, socket type, default, min, max, description)
 _INPUTS = [
@@ -66,48 +66,14 @@ _INPUTS = [
 ]
 
 
-# ----------------------------------------------------------------------------- sampling
-
-def sample_scene(model, num_samples: int, time_range=None) -> dict:
-    """Sample ``model.gaussians_at`` at K evenly spaced times. Returns dict of stacked
-    float32 arrays ``means [K,N,3]``, ``quats [K,N,4]``, ``scales``, ``opacities [K,N]``,
-    ``colors [K,N,3]`` (sRGB-encoded, as the engine gives them) and ``times [K]``."""
-    K = max(2, int(num_samples))
-    t0, t1 = time_range if time_range is not None else model.time_range
-    times = np.linspace(float(t0), float(t1), K)
-    keys = ("means", "quats", "scales", "opacities", "colors")
-    out = {k: [] for k in keys}
-    for t in times:
-        g = model.gaussians_at(float(t))
-        for k in keys:
-            out[k].append(np.asarray(g[k], dtype=np.float32))
-    res = {k: np.stack(v) for k, v in out.items()}
-    res["times"] = times
-    return res
-
-
-def auto_num_samples(duration: float, num_gaussians: int, per_second: float = 150.0,
-                     max_points: int = 4_000_000, max_samples: int = 300) -> int:
-    """A default K: ``per_second`` samples per capture second, at least 2, and at most
-    ``max_points`` stored points in all."""
-    k = int(math.ceil(max(duration, 0.0) * per_second)) + 1
-    k = min(k, max_samples, max(2, max_points // max(1, num_gaussians)))
-    return max(2, k)
-
-
 # ----------------------------------------------------------------------------- mesh cache
 
 def build_sample_mesh(name: str, samples: dict):
-    """Mesh of N*K vertices with the attributes listed in the module docstring."""
-    import bpy
-
-    from .worker import engine_module
-
-    srgb_to_linear = engine_module("colour").srgb_to_linear
-
+    """Mesh of N*K vertices with the attributes listed in the module docstring, from the
+    engine's sample arrays (``Scene4D.sample``)."""
     means = np.asarray(samples["means"], dtype=np.float32)
     K, N = means.shape[:2]
-    quats = np.asarray(samples["quats"], dtype=np.float32).reshape(K * N, 4)
+    quats = np.asarray(samples[A.ROT.sample_key], dtype=np.float32).reshape(K * N, 4)
     norm = np.linalg.norm(quats, axis=1, keepdims=True)
     quats = np.where(norm > 0, quats / np.maximum(norm, 1e-12), np.array([1, 0, 0, 0], np.float32))
     # keep consecutive samples of one Gaussian in the same hemisphere (short-way slerp)
@@ -115,26 +81,23 @@ def build_sample_mesh(name: str, samples: dict):
     for k in range(1, K):
         flip = np.sum(q[k] * q[k - 1], axis=1) < 0
         q[k, flip] *= -1
-    scales = np.asarray(samples["scales"], dtype=np.float32).reshape(K * N, 3)
-    opac = np.clip(np.asarray(samples["opacities"], dtype=np.float32).reshape(K * N), 0.0, 1.0)
-    col = np.asarray(samples["colors"], dtype=np.float32).reshape(K * N, 3)
+    scales = np.asarray(samples[A.SCALE.sample_key], dtype=np.float32).reshape(K * N, 3)
+    opac = np.clip(np.asarray(samples[A.OPACITY.sample_key], dtype=np.float32).reshape(K * N), 0.0, 1.0)
+    col = np.asarray(samples[A.COLOR.sample_key], dtype=np.float32).reshape(K * N, 3)
     lin = np.clip(srgb_to_linear(np.clip(col, 0.0, None)), 0.0, None).astype(np.float32)
     rgba = np.concatenate([lin, np.ones((K * N, 1), np.float32)], axis=1)
 
     mesh = bpy.data.meshes.new(name)
     mesh.vertices.add(K * N)
     mesh.vertices.foreach_set("co", means.reshape(-1))
-    for attr_name, dtype, data in ((ATTR_ROT, "QUATERNION", q.reshape(-1)),
-                                   (ATTR_SCALE, "FLOAT_VECTOR", scales.reshape(-1)),
-                                   (ATTR_OPACITY, "FLOAT", opac),
-                                   (ATTR_COLOR, "FLOAT_COLOR", rgba.reshape(-1))):
-        a = mesh.attributes.new(attr_name, dtype, "POINT")
-        key = {"QUATERNION": "value", "FLOAT_VECTOR": "vector", "FLOAT": "value", "FLOAT_COLOR": "color"}[dtype]
-        a.data.foreach_set(key, data)
+    values = {A.ROT: q, A.SCALE: scales, A.OPACITY: opac, A.COLOR: rgba}
+    for attr in A.POINT_ATTRIBUTES:
+        a = mesh.attributes.new(attr.name, attr.data_type, "POINT")
+        a.data.foreach_set(attr.value_key, values[attr].reshape(-1))
     mesh.update()
-    mesh["bt4d_num_gaussians"] = int(N)
-    mesh["bt4d_num_samples"] = int(K)
-    mesh["bt4d_times"] = [float(t) for t in samples["times"]]
+    mesh[A.NUM_GAUSSIANS] = int(N)
+    mesh[A.NUM_SAMPLES] = int(K)
+    mesh[A.SAMPLE_TIMES] = [float(t) for t in samples["times"]]
     return mesh
 
 
@@ -180,8 +143,6 @@ def _sock(node, name, data_type=None, is_output=False):
 
 def ensure_node_group(material=None):
     """The shared "BT4D Gaussians" node group (created on first use)."""
-    import bpy
-
     tree = bpy.data.node_groups.get(GROUP_NAME)
     if tree is not None and tree.bl_idname == "GeometryNodeTree" and tree.get("bt4d_version") == 1:
         if material is not None:
@@ -259,19 +220,20 @@ def ensure_node_group(material=None):
         return b.node("GeometryNodeInputPosition", (100, 0)).outputs[0]
 
     pos = sampled("FLOAT_VECTOR", position, "VECTOR", -100)
-    rot = sampled("QUATERNION", named(ATTR_ROT, "QUATERNION"), "ROTATION", -300)
-    scl = sampled("FLOAT_VECTOR", named(ATTR_SCALE, "FLOAT_VECTOR"), "VECTOR", -500)
-    opa = sampled("FLOAT", named(ATTR_OPACITY, "FLOAT"), "FLOAT", -700)
-    col = sampled("FLOAT_COLOR", named(ATTR_COLOR, "FLOAT_COLOR"), "RGBA", -900)
+    rot = sampled(A.ROT.data_type, named(A.ROT.name, A.ROT.data_type), "ROTATION", -300)
+    scl = sampled(A.SCALE.data_type, named(A.SCALE.name, A.SCALE.data_type), "VECTOR", -500)
+    opa = sampled(A.OPACITY.data_type, named(A.OPACITY.name, A.OPACITY.data_type), "FLOAT", -700)
+    col = sampled(A.COLOR.data_type, named(A.COLOR.name, A.COLOR.data_type), "RGBA", -900)
 
     pts = b.node("GeometryNodePoints", (300, 300))
     b.link(out("Gaussians"), pts.inputs["Count"])
     b.link(pos, pts.inputs["Position"])
     pts.inputs["Radius"].default_value = 0.01
     geo = pts.outputs[0]
-    for name, dt, field, x in ((ATTR_OPACITY, "FLOAT", opa, 950), (ATTR_COLOR, "FLOAT_COLOR", col, 1050)):
-        st = b.node("GeometryNodeStoreNamedAttribute", (x, 300), data_type=dt, domain="POINT")
-        st.inputs["Name"].default_value = name
+    # stored on the points: the material reads them as instancer attributes
+    for attr, field, x in ((A.OPACITY, opa, 950), (A.COLOR, col, 1050)):
+        st = b.node("GeometryNodeStoreNamedAttribute", (x, 300), data_type=attr.data_type, domain="POINT")
+        st.inputs["Name"].default_value = attr.name
         b.link(geo, st.inputs["Geometry"])
         b.link(field, _sock(st, "Value"))
         geo = st.outputs[0]
@@ -327,10 +289,6 @@ def capture_time_data_path(obj) -> str:
 
 def build_result_object(name: str, samples: dict, collection=None, material=None):
     """Mesh cache + object + GN modifier. Returns the object (Capture Time not keyed)."""
-    import bpy
-
-    from . import gaussian_material
-
     mesh = build_sample_mesh(name, samples)
     obj = bpy.data.objects.new(name, mesh)
     (collection or bpy.context.scene.collection).objects.link(obj)
@@ -345,8 +303,8 @@ def build_result_object(name: str, samples: dict, collection=None, material=None
     set_modifier_input(obj, "Start Time", float(times[0]))
     set_modifier_input(obj, "End Time", float(times[-1]))
     set_modifier_input(obj, CAPTURE_TIME, float(times[0]))
-    obj["bt4d_result"] = True
-    obj["bt4d_time_range"] = [float(times[0]), float(times[-1])]
+    obj[A.IS_RESULT] = True
+    obj[A.TIME_RANGE] = [float(times[0]), float(times[-1])]
     return obj
 
 
@@ -354,9 +312,6 @@ def build_result_object(name: str, samples: dict, collection=None, material=None
 
 def _channelbag(obj):
     """The object's action channelbag (Blender 4.4+ layered actions; 5.0 has no Action.fcurves)."""
-    import bpy
-    from bpy_extras import anim_utils
-
     ad = obj.animation_data or obj.animation_data_create()
     if ad.action is None:
         ad.action = bpy.data.actions.new(f"{obj.name} Action")
@@ -376,8 +331,6 @@ def capture_time_fcurve(obj, create: bool = False):
     if create:
         cb = _channelbag(obj)
     else:
-        from bpy_extras import anim_utils
-
         cb = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
         if cb is None:
             return None
@@ -419,15 +372,13 @@ def capture_time_at(obj, frame: float) -> float:
     if fc is not None and len(fc.keyframe_points):
         return float(fc.evaluate(frame))
     if bool(get_modifier_input(obj, "Use Scene Time")):
-        import bpy
-
         scene = bpy.context.scene
         return float(frame) * scene.render.fps_base / scene.render.fps
     return float(get_modifier_input(obj, CAPTURE_TIME))
 
 
 def find_result_objects(scene):
-    return [o for o in scene.objects if o.get("bt4d_result") and MODIFIER_NAME in o.modifiers]
+    return [o for o in scene.objects if o.get(A.IS_RESULT) and MODIFIER_NAME in o.modifiers]
 
 
 def pick_result_object(context):

@@ -13,6 +13,8 @@ from __future__ import annotations
 import bpy
 from bpy.types import Panel
 
+from . import panel_run
+
 
 class _BT4DPanel:
     bl_space_type = "VIEW_3D"
@@ -78,22 +80,16 @@ class BT4D_PT_bullet_time(_BT4DPanel, Panel):
 
 def draw_reconstruction(layout, context) -> None:
     """Reconstruct button, progress bar, live loss/PSNR/ETA, Cancel."""
-    from . import panel_run
-
     panel_run.draw_reconstruction(layout, context)
 
 
 def draw_result(layout, context) -> None:
     """Held-out metrics and Load Result."""
-    from . import panel_run
-
     panel_run.draw_result(layout, context)
 
 
 def draw_bullet_time(layout, context) -> None:
     """Capture Time, freeze / real time, orbit camera, path render."""
-    from . import panel_run
-
     panel_run.draw_bullet_time(layout, context)
 
 

@@ -1,62 +1,9 @@
 """Sidebar contents for the Reconstruction, Result and Bullet Time panels (``panel.py``
-calls the ``draw_*`` functions below), and ``Scene.bt4d_run``: the live state of a
-reconstruction / path render (progress, loss, PSNR, ETA, status) and the metrics of the
-last run, which the worker's timer updates from the main thread.
+calls the ``draw_*`` functions below). They draw ``Scene.bt4d_run`` (``properties.py``).
 """
 from __future__ import annotations
 
-import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
-from bpy.types import PropertyGroup
-
-STATUS_ITEMS = (
-    ("IDLE", "Idle", "Nothing has run yet"),
-    ("RUNNING", "Running", "A reconstruction is running in the background"),
-    ("FINISHED", "Finished", "The last reconstruction finished"),
-    ("CANCELLED", "Cancelled", "The last reconstruction was cancelled (its checkpoint is kept)"),
-    ("FAILED", "Failed", "The last reconstruction failed (see the message)"),
-)
-
-
-def _redraw(self, context):  # pragma: no cover - UI nicety
-    for win in getattr(context.window_manager, "windows", []):
-        for area in win.screen.areas:
-            if area.type == "VIEW_3D":
-                area.tag_redraw()
-
-
-class BT4D_RunState(PropertyGroup):
-    resume: BoolProperty(
-        name="Resume", default=True,
-        description="Continue from the run folder's checkpoint when its settings match; off: start over")
-    num_samples: IntProperty(
-        name="Time Samples", default=0, min=0, soft_max=400,
-        description="Capture-time samples stored for playback in Blender (0: automatic, about 150 per second)")
-    # live state ---------------------------------------------------------------------------
-    status: EnumProperty(name="Status", items=STATUS_ITEMS, default="IDLE")
-    stage: StringProperty(name="Stage")
-    progress: FloatProperty(name="Progress", min=0.0, max=1.0, subtype="FACTOR")
-    step: IntProperty(name="Step")
-    total_steps: IntProperty(name="Steps")
-    loss: FloatProperty(name="Loss", precision=4)
-    psnr: FloatProperty(name="PSNR", precision=2, description="Training PSNR of the last step (dB)")
-    eta_s: FloatProperty(name="ETA", unit="TIME_ABSOLUTE")
-    elapsed_s: FloatProperty(name="Elapsed", unit="TIME_ABSOLUTE")
-    num_gaussians: IntProperty(name="Gaussians")
-    message: StringProperty(name="Message")
-    run_dir: StringProperty(name="Run", subtype="DIR_PATH", description="Folder of the last reconstruction")
-    # metrics (engine.evaluate) ------------------------------------------------------------
-    has_metrics: BoolProperty(default=False)
-    metric_psnr: FloatProperty(name="PSNR", precision=2)
-    metric_ssim: FloatProperty(name="SSIM", precision=4)
-    metric_psnr_interframe: FloatProperty(name="PSNR between RGB frames", precision=2)
-    metric_psnr_dynamic: FloatProperty(name="PSNR dynamic regions", precision=2)
-    metric_frames: IntProperty(name="Eval frames")
-    train_seconds: FloatProperty(name="Train time", unit="TIME_ABSOLUTE")
-    # path render ---------------------------------------------------------------------------
-    render_running: BoolProperty(default=False)
-    render_progress: FloatProperty(name="Render", min=0.0, max=1.0, subtype="FACTOR")
-    render_message: StringProperty(name="Render message")
+from . import gaussian_nodes as gn
 
 
 def _fmt_time(s: float) -> str:
@@ -122,16 +69,12 @@ def draw_result(layout, context) -> None:
     op = col.operator("bt4d.load_result", text="Load Result", icon="IMPORT")
     if r.run_dir:
         op.directory = r.run_dir
-    from . import gaussian_nodes as gn
-
     results = gn.find_result_objects(scene)
     if not results:
         col.label(text="No reconstruction in the scene", icon="INFO")
 
 
 def draw_bullet_time(layout, context) -> None:
-    from . import gaussian_nodes as gn
-
     scene = context.scene
     r = scene.bt4d_run
     results = gn.find_result_objects(scene)
@@ -158,15 +101,3 @@ def draw_bullet_time(layout, context) -> None:
         col.operator("bt4d.render_path", text="Render Camera Path", icon="RENDER_ANIMATION")
         if r.render_message:
             col.label(text=r.render_message)
-
-
-classes = (BT4D_RunState,)
-
-
-def register():
-    bpy.types.Scene.bt4d_run = bpy.props.PointerProperty(type=BT4D_RunState)
-
-
-def unregister():
-    if hasattr(bpy.types.Scene, "bt4d_run"):
-        del bpy.types.Scene.bt4d_run

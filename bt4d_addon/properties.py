@@ -1,14 +1,17 @@
-"""``Scene.bt4d``: the capture that was imported and the reconstruction settings.
+"""The add-on's scene properties.
 
-Capture summary fields are written by ``bt4d.import_capture``; the reconstruction
-settings (preset, seconds, output_dir, device, use_spikes, and the advanced switches
-freeze_static / early_stop) are read by the training operator.
+* ``Scene.bt4d``: the capture that was imported and the reconstruction settings. Capture
+  summary fields are written by ``bt4d.import_capture``; the reconstruction settings
+  (preset, seconds, output_dir, device, use_spikes, and the advanced switches
+  freeze_static / early_stop) are read by the training operator.
+* ``Scene.bt4d_run``: the live state of a reconstruction / path render (progress, loss,
+  PSNR, ETA, status) and the metrics of the last run, which the operators update from the
+  main thread (``panel_run.py`` draws it).
 """
 from __future__ import annotations
 
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
-                       StringProperty)
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 from bpy.types import PropertyGroup
 
 PRESET_ITEMS = (
@@ -69,13 +72,58 @@ class BT4D_SceneSettings(PropertyGroup):
         return bool(self.capture_dir)
 
 
-classes = (BT4D_SceneSettings,)
+STATUS_ITEMS = (
+    ("IDLE", "Idle", "Nothing has run yet"),
+    ("RUNNING", "Running", "A reconstruction is running in the background"),
+    ("FINISHED", "Finished", "The last reconstruction finished"),
+    ("CANCELLED", "Cancelled", "The last reconstruction was cancelled (its checkpoint is kept)"),
+    ("FAILED", "Failed", "The last reconstruction failed (see the message)"),
+)
+
+
+class BT4D_RunState(PropertyGroup):
+    resume: BoolProperty(
+        name="Resume", default=True,
+        description="Continue from the run folder's checkpoint when its settings match; off: start over")
+    num_samples: IntProperty(
+        name="Time Samples", default=0, min=0, soft_max=400,
+        description="Capture-time samples stored for playback in Blender (0: automatic, about 150 per second)")
+    # live state ---------------------------------------------------------------------------
+    status: EnumProperty(name="Status", items=STATUS_ITEMS, default="IDLE")
+    stage: StringProperty(name="Stage")
+    progress: FloatProperty(name="Progress", min=0.0, max=1.0, subtype="FACTOR")
+    step: IntProperty(name="Step")
+    total_steps: IntProperty(name="Steps")
+    loss: FloatProperty(name="Loss", precision=4)
+    psnr: FloatProperty(name="PSNR", precision=2, description="Training PSNR of the last step (dB)")
+    eta_s: FloatProperty(name="ETA", unit="TIME_ABSOLUTE")
+    elapsed_s: FloatProperty(name="Elapsed", unit="TIME_ABSOLUTE")
+    num_gaussians: IntProperty(name="Gaussians")
+    message: StringProperty(name="Message")
+    run_dir: StringProperty(name="Run", subtype="DIR_PATH", description="Folder of the last reconstruction")
+    # metrics (engine.evaluate) ------------------------------------------------------------
+    has_metrics: BoolProperty(default=False)
+    metric_psnr: FloatProperty(name="PSNR", precision=2)
+    metric_ssim: FloatProperty(name="SSIM", precision=4)
+    metric_psnr_interframe: FloatProperty(name="PSNR between RGB frames", precision=2)
+    metric_psnr_dynamic: FloatProperty(name="PSNR dynamic regions", precision=2)
+    metric_frames: IntProperty(name="Eval frames")
+    train_seconds: FloatProperty(name="Train time", unit="TIME_ABSOLUTE")
+    # path render ---------------------------------------------------------------------------
+    render_running: BoolProperty(default=False)
+    render_progress: FloatProperty(name="Render", min=0.0, max=1.0, subtype="FACTOR")
+    render_message: StringProperty(name="Render message")
+
+
+classes = (BT4D_SceneSettings, BT4D_RunState)
 
 
 def register():
     bpy.types.Scene.bt4d = PointerProperty(type=BT4D_SceneSettings)
+    bpy.types.Scene.bt4d_run = PointerProperty(type=BT4D_RunState)
 
 
 def unregister():
-    if hasattr(bpy.types.Scene, "bt4d"):
-        del bpy.types.Scene.bt4d
+    for name in ("bt4d_run", "bt4d"):
+        if hasattr(bpy.types.Scene, name):
+            delattr(bpy.types.Scene, name)

@@ -14,41 +14,36 @@ Why a thread and not a subprocess
       then saves a checkpoint and returns status "cancelled").
 
 The rule that makes this safe: **the worker never touches bpy**. It only calls the engine
-and pushes messages into a ``queue.Queue``; the main thread drains that queue from a
-``bpy.app.timers`` callback (or a modal operator's timer) and updates Blender state.
+and pushes messages into a ``queue.Queue``; the main thread drains that queue with
+:meth:`Job.pump` from a ``bpy.app.timers`` callback (reconstruct) or a modal operator's
+timer (render_path) and updates Blender state.
+
+One runner for both operators: :meth:`Job.start` (worker thread; the main thread calls
+:meth:`Job.pump` until it returns False) or :meth:`Job.run_sync` (background mode, where no
+timer ever fires). While a job runs it is the active job of its ``kind``
+(:func:`is_running`, :func:`active_job`); it stops being so once its last message is drained.
 
 This module itself does not import bpy, so it can be tested in plain Python.
 """
 from __future__ import annotations
 
-import importlib
 import queue
 import threading
 import time
 import traceback
 
-# ----------------------------------------------------------------------------- engine import
-
-_BASE = (__package__ or "").rpartition(".")[0]  # "" when bt4d_addon is a top-level package
-
-
-def engine_module(sub: str | None = None):
-    """Import ``engine`` (or ``engine.<sub>``) from wherever this add-on lives: inside the
-    extension package (``bl_ext.<repo>.bullettime4d.engine``) or top-level (tests, scripts)."""
-    name = f"{_BASE}.engine" if _BASE else "engine"
-    if sub:
-        name += "." + sub
-    return importlib.import_module(name)
-
+from . import engine_bridge
 
 # ----------------------------------------------------------------------------- jobs
 
-class Job:
-    """``target(progress=callable, cancel=Event, **kwargs)`` run in a daemon thread.
 
-    Messages (drain with :meth:`poll`): ``("progress", dict)``, ``("done", result)``,
-    ``("error", message, traceback_text)``. ``progress`` may be called with any dict; the
-    last one is also kept in :attr:`last_progress`.
+class Job:
+    """``target(progress=callable, cancel=Event, **kwargs)`` run in a daemon thread or in the
+    calling thread.
+
+    Messages (drain with :meth:`poll` or :meth:`pump`): ``("progress", dict)``,
+    ``("done", result)``, ``("error", message, traceback_text)``. ``progress`` may be called
+    with any dict; the last one is also kept in :attr:`last_progress`.
     """
 
     def __init__(self, target, kind: str = "job", **kwargs):
@@ -65,10 +60,15 @@ class Job:
         self.started = None
         self.finished = False
         self.context: dict = {}  # free slot for the caller (main thread only)
+        self._on_progress = None   # main-thread watchers (see watch)
+        self._on_finish = None
+        self._sync_progress = None  # run_sync's observer, called in the running thread
 
     # worker side -----------------------------------------------------------------------
     def _progress(self, info: dict) -> None:
         self.queue.put(("progress", dict(info)))
+        if self._sync_progress is not None:
+            self._sync_progress(dict(info))
 
     def _run(self) -> None:
         try:
@@ -80,16 +80,46 @@ class Job:
 
     # main-thread side -------------------------------------------------------------------
     def start(self) -> "Job":
+        """Run in a daemon thread; the main thread then calls :meth:`pump` (or :meth:`poll`)."""
         self.started = time.monotonic()
+        _ACTIVE[self.kind] = self
         self.thread = threading.Thread(target=self._run, name=f"bt4d-{self.kind}", daemon=True)
         self.thread.start()
         return self
 
-    def run_sync(self):
-        """Run in the calling thread (background mode). Messages still go through the queue."""
+    def run_sync(self, progress=None) -> "Job":
+        """Run to the end in the calling thread (background mode: no timers run there).
+        ``progress(info)`` sees every progress message as it is sent; on return the job is
+        finished (:attr:`result` or :attr:`error` set) and no longer active."""
         self.started = time.monotonic()
-        self._run()
+        _ACTIVE[self.kind] = self
+        self._sync_progress = progress
+        try:
+            self._run()
+        finally:
+            self._sync_progress = None
+            self.poll()
         return self
+
+    def watch(self, on_progress=None, on_finish=None) -> "Job":
+        """What :meth:`pump` does with the messages: ``on_progress(info)`` for each progress
+        message, ``on_finish(job)`` once, after the final one (main thread)."""
+        self._on_progress, self._on_finish = on_progress, on_finish
+        return self
+
+    def pump(self) -> bool:
+        """The polling helper (main thread, from a timer): drain the messages into the
+        watchers set by :meth:`watch`. Returns True while the job still runs, False once it
+        has finished and ``on_finish`` has run."""
+        was_finished = self.finished
+        for msg in self.poll():
+            if msg[0] == "progress" and self._on_progress is not None:
+                self._on_progress(msg[1])
+        if not self.finished:
+            return True
+        if not was_finished and self._on_finish is not None:
+            self._on_finish(self)
+        return False
 
     def cancel(self) -> None:
         self.cancel_event.set()
@@ -113,6 +143,8 @@ class Job:
             elif msg[0] == "error":
                 self.error, self.error_traceback, self.finished = msg[1], msg[2], True
             out.append(msg)
+        if self.finished and _ACTIVE.get(self.kind) is self:
+            del _ACTIVE[self.kind]
         return out
 
     @property
@@ -129,13 +161,6 @@ _ACTIVE: dict[str, Job] = {}
 
 def active_job(kind: str) -> Job | None:
     return _ACTIVE.get(kind)
-
-
-def set_active(kind: str, job: Job | None) -> None:
-    if job is None:
-        _ACTIVE.pop(kind, None)
-    else:
-        _ACTIVE[kind] = job
 
 
 def is_running(kind: str) -> bool:
@@ -162,19 +187,17 @@ def reconstruct_job(*, progress, cancel, capture_path: str, run_dir: str, preset
     """Train -> evaluate -> sample the model for the bring-back. No bpy in here.
 
     Returns dict(summary=train summary, metrics=dict|None, metrics_error=str|None,
-    samples=dict|None (``gaussian_nodes.sample_scene`` arrays), run_dir=str)."""
-    train_mod = engine_module("train")
-    summary = train_mod.train(capture_path, run_dir, preset=preset, seconds=seconds, rgb_only=rgb_only,
-                              resume=resume, device=None if device in (None, "auto") else device,
-                              seed=seed, progress=progress, cancel=cancel, overrides=overrides)
+    samples=dict|None (``Scene4D.sample`` arrays), run_dir=str)."""
+    summary = engine_bridge.train(capture_path, run_dir, preset=preset, seconds=seconds, rgb_only=rgb_only,
+                                  resume=resume, device=None if device in (None, "auto") else device,
+                                  seed=seed, progress=progress, cancel=cancel, overrides=overrides)
     out = {"summary": summary, "metrics": None, "metrics_error": None, "samples": None, "run_dir": run_dir}
     if summary.get("status") != "finished":
         return out
     if evaluate:
         progress({"stage": "evaluating"})
         try:
-            ev = engine_module("evaluate")
-            out["metrics"] = ev.evaluate(run_dir)
+            out["metrics"] = engine_bridge.evaluate(run_dir)
         except Exception as exc:  # noqa: BLE001 - a failed evaluation must not lose the run
             out["metrics_error"] = f"{exc.__class__.__name__}: {exc}"
     if bring_back:
@@ -185,51 +208,30 @@ def reconstruct_job(*, progress, cancel, capture_path: str, run_dir: str, preset
 
 def sample_run(run_dir: str, num_samples: int = 0, device="cpu") -> dict:
     """Open a run and sample it at K times (K = 0: automatic). No bpy."""
-    from .gaussian_nodes import auto_num_samples, sample_scene
-
-    model_mod = engine_module("model")
-    scene = model_mod.load_run(run_dir, device=device)
-    t0, t1 = scene.time_range
-    k = int(num_samples) if num_samples and num_samples >= 2 else auto_num_samples(t1 - t0, scene.num_gaussians)
-    samples = sample_scene(scene, k, (t0, t1))
+    samples = engine_bridge.load_run(run_dir, device=device).sample(num_samples)
     samples["run_dir"] = str(run_dir)
     return samples
 
 
+_ENGINE_FORMAT = {"OPEN_EXR": "exr", "PNG": "png"}
+
+
 def render_views_job(*, progress, cancel, scene4d, views: list, outputs: list, file_format: str = "OPEN_EXR",
                      transparent: bool = True, background=(0.0, 0.0, 0.0)) -> dict:
-    """Render engine Views (each at its own time) and write one file per view. No bpy.
+    """Render engine Views (each at its own time) to one file per view with the engine's
+    render-to-file (``write_renders``: its EXR / PNG conventions). No bpy.
 
-    ``outputs``: file paths, one per view. EXR: linear RGBA (premultiplied, i.e. over black)
-    + Z (camera distance along the view axis, 1e10 where nothing was hit). PNG: 8-bit sRGB,
-    RGBA with straight alpha when ``transparent`` else RGB over ``background``."""
-    import numpy as np
-
-    colour = engine_module("colour")
-    images = engine_module("images")
+    ``outputs``: file paths, one per view. PNG: RGBA with straight alpha when
+    ``transparent``, else RGB over ``background``. One view per call, so that cancel and
+    progress act between frames."""
+    fmt = _ENGINE_FORMAT[file_format]
+    png_background = None if transparent else tuple(background)
     written = []
     t_start = time.monotonic()
     for i, (view, path) in enumerate(zip(views, outputs)):
         if cancel is not None and cancel.is_set():
             return {"status": "cancelled", "written": written}
-        if file_format == "OPEN_EXR" or not transparent:
-            bg = (0.0, 0.0, 0.0) if file_format == "OPEN_EXR" else background
-        else:
-            bg = (0.0, 0.0, 0.0)
-        r = scene4d.render([view], background=bg)[0]
-        rgb, alpha, depth = r["rgb"], r["alpha"], r["depth"]
-        if file_format == "OPEN_EXR":
-            lin = colour.srgb_to_linear(np.clip(rgb, 0.0, None)).astype(np.float32)
-            # engine depth: expected camera z normalised by alpha, 0 where nothing was hit
-            z = np.where((alpha > 1e-4) & (depth > 0), depth, 1e10).astype(np.float32)
-            images.write_exr(path, {"R": lin[..., 0], "G": lin[..., 1], "B": lin[..., 2], "A": alpha, "Z": z})
-        else:
-            if transparent:
-                straight = np.where(alpha[..., None] > 1e-6, rgb / np.maximum(alpha[..., None], 1e-6), 0.0)
-                img = np.concatenate([np.clip(straight, 0, 1), alpha[..., None]], axis=-1)
-            else:
-                img = rgb
-            images.write_png(path, img)
+        engine_bridge.write_renders(scene4d, [view], None, fmt, paths=[path], png_background=png_background)
         written.append(str(path))
         el = time.monotonic() - t_start
         progress({"step": i + 1, "total_steps": len(views), "stage": "rendering", "elapsed_s": el,

@@ -2,7 +2,8 @@
 
 Each sub-command lives in ``engine/cli/<name>.py`` and defines ``HELP``,
 ``add_arguments(parser)`` and ``main(args) -> int``. Modules are imported only when their
-command runs, so ``--help`` and light commands start fast.
+command runs, so ``--help`` and light commands start fast. Benchmarks, the stress suite
+and the ablation are development tools: ``python -m tools`` (not shipped).
 """
 from __future__ import annotations
 
@@ -18,11 +19,6 @@ COMMANDS = {
     "export": "export",
     "demo": "demo",
     "spikes": "spikes",
-    "bench-decode": "bench_decode",
-    "bench-raster": "bench_raster",
-    "bench": "bench",
-    "stress": "stress",
-    "ablate": "ablate",
 }
 
 

@@ -28,7 +28,7 @@ def _is_torch(x) -> bool:
 def srgb_to_linear(x):
     """sRGB-encoded values -> linear light. Values <= 0 map linearly (x / 12.92)."""
     if _is_torch(x):
-        import torch
+        import torch  # lazy: a foundation module, imported by the Blender UI where torch may be absent
 
         lo = x / 12.92
         hi = ((torch.clamp(x, min=_SRGB_KNEE) + 0.055) / 1.055) ** 2.4
@@ -45,7 +45,7 @@ def srgb_to_linear(x):
 def linear_to_srgb(x):
     """Linear light -> sRGB-encoded values (no clipping; clip to [0, 1] yourself if needed)."""
     if _is_torch(x):
-        import torch
+        import torch  # lazy: a foundation module, imported by the Blender UI where torch may be absent
 
         lo = x * 12.92
         hi = 1.055 * torch.clamp(x, min=_LIN_KNEE) ** (1.0 / 2.4) - 0.055

@@ -16,22 +16,26 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, FloatProperty
 from bpy.types import Operator
+from bpy_extras import anim_utils
+from mathutils import Matrix
 
+from ..bt4d_addon import attributes as A
 from ..bt4d_addon import gaussian_nodes as gn
+from ..bt4d_addon.engine_bridge import look_at_c2w
 
 
 def result_centre_and_radius(obj, capture_time: float) -> tuple[np.ndarray, float]:
     """Robust centre (opacity-weighted median) and radius (90th percentile distance) of the
     Gaussians at the sample nearest ``capture_time``, in world space."""
     mesh = obj.data
-    N, K = int(mesh["bt4d_num_gaussians"]), int(mesh["bt4d_num_samples"])
-    times = np.asarray(mesh["bt4d_times"], dtype=np.float64)
+    N, K = int(mesh[A.NUM_GAUSSIANS]), int(mesh[A.NUM_SAMPLES])
+    times = np.asarray(mesh[A.SAMPLE_TIMES], dtype=np.float64)
     k = int(np.argmin(np.abs(times - capture_time))) if len(times) else 0
     co = np.empty(N * K * 3, np.float32)
     mesh.vertices.foreach_get("co", co)
     pts = co.reshape(K, N, 3)[k].astype(np.float64)
     op = np.empty(N * K, np.float32)
-    mesh.attributes[gn.ATTR_OPACITY].data.foreach_get("value", op)
+    mesh.attributes[A.OPACITY.name].data.foreach_get(A.OPACITY.value_key, op)
     op = op.reshape(K, N)[k]
     keep = op >= 0.2 if np.count_nonzero(op >= 0.2) >= 4 else np.ones(N, bool)
     pts = pts[keep]
@@ -52,11 +56,6 @@ def freeze(obj, scene, value: float | None = None) -> float:
 
 def add_orbit_camera(context, obj, *, turns: float = 1.0, radius: float = 0.0, height: float | None = None,
                      do_freeze: bool = True, name: str = "BT4D Orbit"):
-    from mathutils import Matrix
-
-    from ..bt4d_addon.worker import engine_module
-
-    look_at_c2w = engine_module("cameras").look_at_c2w
     scene = context.scene
     t_now = gn.capture_time_at(obj, scene.frame_current)
     centre, extent = result_centre_and_radius(obj, t_now)
@@ -90,8 +89,6 @@ def add_orbit_camera(context, obj, *, turns: float = 1.0, radius: float = 0.0, h
         cam.keyframe_insert("location", frame=f)
         cam.keyframe_insert("rotation_euler", frame=f)
     # linear between the per-frame keys (sub-frames, motion blur)
-    from bpy_extras import anim_utils
-
     ad = cam.animation_data
     cb = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
     for fc in cb.fcurves:
@@ -172,7 +169,7 @@ class BT4D_OT_realtime_capture_time(Operator):
     def execute(self, context):
         obj = gn.pick_result_object(context)
         scene = context.scene
-        t0, t1 = (float(x) for x in obj["bt4d_time_range"])
+        t0, t1 = (float(x) for x in obj[A.TIME_RANGE])
         fps = scene.render.fps / scene.render.fps_base
         fe = scene.frame_start + (t1 - t0) * fps / self.speed
         gn.key_capture_time(obj, [(scene.frame_start, t0), (fe, t1)])

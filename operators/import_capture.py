@@ -1,6 +1,6 @@
 """``bpy.ops.bt4d.import_capture(directory=...)``: a capture folder -> Blender cameras.
 
-Everything is loaded and validated first (``engine.capture.load_capture`` plus the image
+Everything is loaded and validated first (``engine.io.capture.load_capture`` plus the image
 headers) into a plain :class:`ImportPlan`; only then are datablocks created, so a bad
 capture leaves the file untouched. Should building still fail, everything created so far
 is removed again.
@@ -8,7 +8,7 @@ is removed again.
 What the import creates, in a new collection named after the capture folder:
 
 * one camera object per capture camera, named after it: lens, sensor and shift from the
-  pinhole intrinsics (``bt4d_addon.scene_build``), ``matrix_world`` = the OpenGL
+  pinhole intrinsics (``bt4d_addon.blender_cameras``), ``matrix_world`` = the OpenGL
   camera-to-world of the camera's first frame (keyframed per frame time when it moves);
 * custom properties ``bt4d_*`` on each object: role, intrinsics, frame count, first
   frame, and for spike cameras the stream file, rate, frame count, t0, size and the
@@ -30,7 +30,8 @@ import bpy
 from bpy.props import BoolProperty, IntProperty, StringProperty
 from bpy.types import Operator
 
-from ..bt4d_addon import scene_build
+from ..bt4d_addon import blender_cameras, scene_build
+from ..bt4d_addon.engine_bridge import CaptureError, load_capture, read_image_size
 
 FRAME_START = 1
 _NUM_RE = re.compile(r"^(.*?)(\d+)(\D*)$")
@@ -57,7 +58,7 @@ class CameraPlan:
     moving: bool
     num_frames: int
     first_frame: Path | None
-    stream: object | None = None         # engine.capture.SpikeStreamInfo
+    stream: object | None = None         # engine.io.capture.SpikeStreamInfo
     sequence: SequencePlan | None = None
     pose_source: str = "frames"
 
@@ -82,8 +83,6 @@ class ImportPlan:
 
 
 def _image_size(path: Path):
-    from ..engine.images import read_image_size
-
     try:
         return read_image_size(path)
     except ImportError:  # e.g. EXR without the OpenEXR module: Blender reads it later anyway
@@ -91,8 +90,6 @@ def _image_size(path: Path):
 
 
 def _validate_images(frames) -> None:
-    from ..engine.errors import CaptureError
-
     for fr in frames:
         size = _image_size(fr.path)
         k = fr.intrinsics
@@ -127,9 +124,6 @@ def _sequence_plan(frames, plan_frame_of, frame_start: int, frame_end: int) -> S
 
 def plan_import(path, fps: int = 0) -> ImportPlan:
     """Load and validate a capture into an ImportPlan. Raises CaptureError; creates no bpy data."""
-    from ..engine.capture import load_capture
-    from ..engine.errors import CaptureError
-
     cap = load_capture(path)
     all_frames = list(cap.frames) + list(cap.eval_frames)
     _validate_images(all_frames)
@@ -284,7 +278,7 @@ def build_scene(context, plan: ImportPlan, *, set_scene: bool = True, background
         coll["bt4d_time_start"] = plan.time_range[0]
         objects = {}
         for cp in plan.cameras:
-            obj = scene_build.create_camera_object(cp.name, cp.intrinsics, cp.poses[0][1], coll)
+            obj = blender_cameras.create_camera_object(cp.name, cp.intrinsics, cp.poses[0][1], coll)
             created.add(obj.data)
             created.add(obj)
             objects[cp.name] = obj
@@ -297,7 +291,7 @@ def build_scene(context, plan: ImportPlan, *, set_scene: bool = True, background
                 _add_background(obj, cp.sequence, created, plan.frame_start)
         main = next(cp for cp in plan.cameras if cp.name == plan.main_camera)
         if set_scene:
-            scene_build.configure_render(scene, main.intrinsics)
+            blender_cameras.configure_render(scene, main.intrinsics)
             scene.render.fps = plan.fps
             scene.render.fps_base = 1.0
             scene.frame_start = plan.frame_start
@@ -352,8 +346,6 @@ class BT4D_OT_import_capture(Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ..engine.errors import CaptureError
-
         path = self._capture_path()
         if not path:
             self.report({"ERROR"}, "No capture folder given")

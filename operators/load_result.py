@@ -1,6 +1,6 @@
 """``bpy.ops.bt4d.load_result(directory=RUN)``: bring a reconstruction back into Blender.
 
-The run's model (``engine.model.load_run``) is sampled at K capture times and stored as one
+The run's model (``engine.scene.model.load_run``) is sampled at K capture times (``Scene4D.sample``) and stored as one
 mesh of N*K vertices packed in the .blend; a geometry-nodes modifier turns it into
 ellipsoid instances animated by the keyframable "Capture Time" input
 (``bt4d_addon/gaussian_nodes.py``, ``bt4d_addon/gaussian_material.py``). Nothing runs in
@@ -19,6 +19,7 @@ import bpy
 from bpy.props import BoolProperty, IntProperty, StringProperty
 from bpy.types import Operator
 
+from ..bt4d_addon import attributes as A
 from ..bt4d_addon import gaussian_material, gaussian_nodes, worker
 
 COLLECTION_NAME = "BT4D Results"
@@ -47,12 +48,12 @@ def load_samples(scene, samples: dict, run_dir: str, *, name: str | None = None,
     name = name or f"BT4D {Path(run_dir).name}"
     if replace:
         for obj in list(gaussian_nodes.find_result_objects(scene)):
-            if obj.get("bt4d_run_dir") == run_dir:
+            if obj.get(A.RUN_DIR) == run_dir:
                 remove_result_object(obj)
     obj = gaussian_nodes.build_result_object(name, samples, collection=_collection(scene))
-    obj["bt4d_run_dir"] = run_dir
+    obj[A.RUN_DIR] = run_dir
     if metrics:
-        obj["bt4d_metrics"] = {k: float(v) for k, v in metrics.items() if isinstance(v, (int, float))}
+        obj[A.METRICS] = {k: float(v) for k, v in metrics.items() if isinstance(v, (int, float))}
     gaussian_material.configure_scene_for_splats(scene)
     t0, t1 = float(samples["times"][0]), float(samples["times"][-1])
     if key_time:
@@ -114,8 +115,8 @@ class BT4D_OT_load_result(Operator):
             o.select_set(False)
         obj.select_set(True)
         context.view_layer.objects.active = obj
-        n = obj.data["bt4d_num_gaussians"]
-        self.report({"INFO"}, f"Loaded {n} Gaussians x {obj.data['bt4d_num_samples']} time samples as {obj.name!r}")
+        n, k = obj.data[A.NUM_GAUSSIANS], obj.data[A.NUM_SAMPLES]
+        self.report({"INFO"}, f"Loaded {n} Gaussians x {k} time samples as {obj.name!r}")
         return {"FINISHED"}
 
 

@@ -6,11 +6,17 @@ advanced switches "Freeze Static Gaussians" / "Stop Early", passed as the traini
 overrides ``freeze_static`` / ``early_stop``):
 
 * interactive Blender: ``engine.train.train`` runs in a worker thread
-  (``bt4d_addon/worker.py``: it never touches bpy); a ``bpy.app.timers`` callback drains
-  its progress queue into ``scene.bt4d_run`` (progress bar, loss, PSNR, ETA) a few times
-  a second. Cancel sets the job's Event; the engine saves a checkpoint and stops.
+  (``bt4d_addon/worker.py``: it never touches bpy); a ``bpy.app.timers`` callback pumps
+  its progress queue (``Job.pump``) into ``scene.bt4d_run`` (progress bar, loss, PSNR,
+  ETA) a few times a second. Cancel sets the job's Event; the engine saves a checkpoint
+  and stops.
 * background mode (``blender --background``, the ``bpy`` module: no timers, no events):
-  the same work runs synchronously and prints one progress line per second.
+  the same work runs synchronously (``Job.run_sync``) and prints one progress line per
+  second.
+
+The operator's ``run_mode`` picks one of the two explicitly (default: by the mode Blender
+runs in); a script in background mode that pumps the job itself
+(``worker.active_job("reconstruct").pump()``) can ask for the worker thread.
 
 On success the run is evaluated (``engine.evaluate``, held-out metrics into the Result
 panel) and brought back (``load_result``). A failure reports the error and changes
@@ -30,17 +36,23 @@ import time
 from pathlib import Path
 
 import bpy
-from bpy.props import BoolProperty, FloatProperty, IntProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from bpy.types import Operator
 
 from ..bt4d_addon import worker
 from . import load_result
 
 KIND = "reconstruct"
-# Tests set this to exercise the threaded (interactive) path inside the bpy module, where
-# bpy.app.background is True; they then pump the timer function kept in LAST_POLL.
-FORCE_THREAD = False
-LAST_POLL = None
+RUN_MODE_ITEMS = (
+    ("AUTO", "Auto", "A worker thread in the interactive UI; to the end before returning in background mode"),
+    ("THREAD", "Worker Thread", "Return at once; a timer (or the caller, with Job.pump) follows the job"),
+    ("WAIT", "Wait", "Run to the end before returning"),
+)
+
+
+def use_thread(run_mode: str) -> bool:
+    """Whether ``run_mode`` runs the job in a worker thread (see RUN_MODE_ITEMS)."""
+    return run_mode == "THREAD" or (run_mode == "AUTO" and not bpy.app.background)
 
 
 def capture_name(scene) -> str:
@@ -127,7 +139,8 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
     res = job.result or {}
     summary = res.get("summary", {})
     status = str(summary.get("status", "finished"))
-    apply_progress(scene, {"step": summary.get("step", r.step), "total_steps": summary.get("total_steps", r.total_steps),
+    apply_progress(scene, {"step": summary.get("step", r.step),
+                           "total_steps": summary.get("total_steps", r.total_steps),
                            "num_gaussians": summary.get("num_gaussians", r.num_gaussians),
                            "elapsed_s": summary.get("train_seconds", r.elapsed_s), "eta_s": 0.0})
     if status == "cancelled":
@@ -143,7 +156,8 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
     msgs = []
     if summary.get("stopped_early"):
         se = summary["stopped_early"]
-        msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} (held-out PSNR no longer improving)")
+        msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} "
+                    "(held-out PSNR no longer improving)")
     if res.get("metrics_error"):
         msgs.append(f"evaluation failed: {res['metrics_error']}")
     if res.get("samples") is not None:
@@ -186,36 +200,38 @@ def _popup(text: str) -> None:
         pass
 
 
-def _make_timer(scene_name: str, job: worker.Job, scene_uid: int = 0):
-    def poll():
-        # the scene the job started from, found by its session id (survives renames; a
-        # scene of another, newly loaded file never matches)
-        scene = next((sc for sc in bpy.data.scenes if sc.session_uid == scene_uid), None) if scene_uid \
-            else bpy.data.scenes.get(scene_name)
-        msgs = job.poll()
-        if scene is None:  # file closed/scene deleted: stop polling once the job ends
-            if job.finished:
-                print(f"BT4D: reconstruction ended ({job.error or 'done'}); its scene is gone, the run "
-                      f"folder {job.kwargs.get('run_dir')} holds the result")
-            if job.finished:
-                worker.set_active(KIND, None)
-                return None
-            return 0.5
-        for m in msgs:
-            if m[0] == "progress":
-                apply_progress(scene, m[1])
-        if job.finished:
-            level, text = finish(scene, job)
-            print(f"BT4D: {text}")
-            worker.set_active(KIND, None)
-            _tag_redraw()
-            if level == "ERROR":
-                _popup(text)
-            return None
-        _tag_redraw()
-        return 0.25
+def _watch(job: worker.Job, scene_name: str, scene_uid: int = 0) -> worker.Job:
+    """Hand the job's messages to the scene it started from, found by its session id (survives
+    renames; a scene of another, newly loaded file never matches)."""
+    def scene():
+        if scene_uid:
+            return next((sc for sc in bpy.data.scenes if sc.session_uid == scene_uid), None)
+        return bpy.data.scenes.get(scene_name)
 
-    return poll
+    def on_progress(info):
+        sc = scene()
+        if sc is not None:
+            apply_progress(sc, info)
+            _tag_redraw()
+
+    def on_finish(job):
+        sc = scene()
+        if sc is None:  # file closed / scene deleted
+            print(f"BT4D: reconstruction ended ({job.error or 'done'}); its scene is gone, the run "
+                  f"folder {job.kwargs.get('run_dir')} holds the result")
+            return
+        level, text = finish(sc, job)
+        print(f"BT4D: {text}")
+        _tag_redraw()
+        if level == "ERROR":
+            _popup(text)
+
+    return job.watch(on_progress, on_finish)
+
+
+def _timer(job: worker.Job):
+    """The bpy.app.timers callback: pump the job until it has finished."""
+    return lambda: 0.25 if job.pump() else None
 
 
 class BT4D_OT_reconstruct(Operator):
@@ -238,6 +254,8 @@ class BT4D_OT_reconstruct(Operator):
                            description="Training budget in seconds (-1: scene setting)")
     iterations: IntProperty(name="Iterations", default=0, min=0, options={"SKIP_SAVE"},
                             description="Fixed number of training steps instead of a time budget (0: use the budget)")
+    run_mode: EnumProperty(name="Run", items=RUN_MODE_ITEMS, default="AUTO", options={"SKIP_SAVE"},
+                           description="Where the training runs (see the items)")
 
     @classmethod
     def poll(cls, context):
@@ -271,14 +289,11 @@ class BT4D_OT_reconstruct(Operator):
         r.progress, r.step, r.total_steps, r.loss, r.psnr, r.eta_s = 0.0, 0, 0, 0.0, 0.0, 0.0
         r.has_metrics = False
 
-        if bpy.app.background and not FORCE_THREAD:
+        if not use_thread(self.run_mode):
             return self._run_sync(scene, job)
-        global LAST_POLL
-        worker.set_active(KIND, job)
-        job.start()
-        LAST_POLL = _make_timer(scene.name, job, scene.session_uid)
+        _watch(job, scene.name, scene.session_uid).start()
         # persistent: keeps polling across file loads, so the job is always reaped
-        bpy.app.timers.register(LAST_POLL, first_interval=0.2, persistent=True)
+        bpy.app.timers.register(_timer(job), first_interval=0.2, persistent=True)
         self.report({"INFO"}, f"Reconstruction started in {run_dir}")
         return {"FINISHED"}
 
@@ -295,19 +310,7 @@ class BT4D_OT_reconstruct(Operator):
                 print(progress_line(info), flush=True)
             apply_progress(scene, info)
 
-        orig = job._progress
-
-        def both(info):
-            orig(info)
-            on_progress(info)
-
-        job._progress = both
-        worker.set_active(KIND, job)
-        try:
-            job.run_sync()
-            job.poll()
-        finally:
-            worker.set_active(KIND, None)
+        job.run_sync(on_progress)
         level, text = finish(scene, job)
         print(f"BT4D: {text}", flush=True)
         self.report({level}, text)

@@ -5,15 +5,16 @@ For every frame of the scene's frame range the scene is evaluated at that frame,
 active scene camera becomes an engine ``View`` (``bt4d_addon/blender_cameras.py``: lens,
 sensor fit, shift, pixel aspect, resolution x percentage) at the capture time the result
 object's "Capture Time" input has at that frame (its F-curve, so bullet time and slow
-motion render as keyed), and ``Scene4D.render`` draws it. Files go to
-``scene.render.filepath`` with Blender's frame numbering (``#`` placeholders, or 4 digits
-appended): EXR = linear RGBA (premultiplied) + Z, PNG = 8-bit sRGB (RGBA when
-``film_transparent``). The sequence is loaded back as an image datablock
-(source 'SEQUENCE').
+motion render as keyed), and the engine's render-to-file (``write_renders``, through
+``bt4d_addon/engine_bridge.py``) draws and writes it. Files go to ``scene.render.filepath``
+with Blender's frame numbering (``#`` placeholders, or 4 digits appended), in the engine's
+conventions: EXR = linear RGBA (premultiplied) + Z, PNG = 8-bit sRGB (RGBA when
+``film_transparent``, else RGB over black). The sequence is loaded back as an image
+datablock (source 'SEQUENCE').
 
-Interactive: a modal operator with a window-manager timer; the renders run in a worker
-thread (no bpy there), ESC or ``bt4d.cancel_render_path`` stops it. Background mode:
-synchronous.
+Interactive: a modal operator with a window-manager timer pumps the job (``Job.pump``); the
+renders run in a worker thread (no bpy there), ESC or ``bt4d.cancel_render_path`` stops
+it. Background mode (or no window): synchronous (``Job.run_sync``).
 """
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from bpy.types import Operator
 
-from ..bt4d_addon import blender_cameras, gaussian_nodes, worker
+from ..bt4d_addon import attributes as A
+from ..bt4d_addon import blender_cameras, engine_bridge, gaussian_nodes, worker
 
 KIND = "render_path"
 FORMAT_ITEMS = (
@@ -44,7 +46,7 @@ def get_scene4d(run_dir: str):
     key = (str(run_dir), ck.stat().st_mtime if ck.exists() else None)
     if key not in _SCENE4D_CACHE:
         _SCENE4D_CACHE.clear()
-        _SCENE4D_CACHE[key] = worker.engine_module("model").load_run(run_dir, device="cpu")
+        _SCENE4D_CACHE[key] = engine_bridge.load_run(run_dir, device="cpu")
     return _SCENE4D_CACHE[key]
 
 
@@ -85,6 +87,14 @@ def collect_views(scene, camera, obj, frames) -> list:
     return views
 
 
+def show_progress(scene, info: dict) -> None:
+    """A progress message of the render job into ``scene.bt4d_run`` (main thread)."""
+    r = getattr(scene, "bt4d_run", None)
+    if r is not None:
+        r.render_progress = info.get("step", 0) / max(1, info.get("total_steps", 1))
+        r.render_message = f"Frame {info.get('step')}/{info.get('total_steps')}"
+
+
 def load_sequence(paths: list[str], name: str | None = None):
     """Load written frames back as an image sequence datablock."""
     if not paths:
@@ -122,7 +132,7 @@ class BT4D_OT_render_path(Operator):
             raise RuntimeError("No reconstruction in the scene: load a result first")
         if scene.camera is None:
             raise RuntimeError("The scene has no camera")
-        run_dir = bpy.path.abspath(self.run_dir) if self.run_dir else obj.get("bt4d_run_dir", "")
+        run_dir = bpy.path.abspath(self.run_dir) if self.run_dir else obj.get(A.RUN_DIR, "")
         if not run_dir:
             raise RuntimeError(f"{obj.name!r} does not say which run it came from")
         fs = scene.frame_start if self.frame_start < 0 else self.frame_start
@@ -140,7 +150,6 @@ class BT4D_OT_render_path(Operator):
         r = context.scene.bt4d_run if hasattr(context.scene, "bt4d_run") else None
         if r is not None:
             r.render_running = False
-        worker.set_active(KIND, None)
         if job.error:
             if r is not None:
                 r.render_message = f"Failed: {job.error}"
@@ -173,29 +182,20 @@ class BT4D_OT_render_path(Operator):
         r = getattr(context.scene, "bt4d_run", None)
         if bpy.app.background or context.window_manager is None or not context.window_manager.windows:
             last = [0.0]
-            orig = job._progress
 
             def prog(info):
-                orig(info)
                 now = time.monotonic()
                 if now - last[0] >= 1.0 or info.get("step") == info.get("total_steps"):
                     last[0] = now
                     print(f"BT4D render_path: frame {info.get('step')}/{info.get('total_steps')} -> "
                           f"{info.get('path')}", flush=True)
 
-            job._progress = prog
-            worker.set_active(KIND, job)
-            try:
-                job.run_sync()
-                job.poll()
-            finally:
-                worker.set_active(KIND, None)
-            return self._finish(context, job)
+            return self._finish(context, job.run_sync(prog))
         # interactive: modal + timer
         if r is not None:
             r.render_running, r.render_progress, r.render_message = True, 0.0, "starting"
-        self._job = job
-        worker.set_active(KIND, job)
+        scene = context.scene
+        self._job = job.watch(on_progress=lambda info: show_progress(scene, info))
         job.start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.2, window=context.window)
@@ -211,16 +211,11 @@ class BT4D_OT_render_path(Operator):
             job.cancel()
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        r = getattr(context.scene, "bt4d_run", None)
-        for m in job.poll():
-            if m[0] == "progress" and r is not None:
-                info = m[1]
-                r.render_progress = info.get("step", 0) / max(1, info.get("total_steps", 1))
-                r.render_message = f"Frame {info.get('step')}/{info.get('total_steps')}"
+        running = job.pump()
         for area in context.screen.areas if context.screen else []:
             if area.type == "VIEW_3D":
                 area.tag_redraw()
-        if not job.finished:
+        if running:
             return {"RUNNING_MODAL"}
         context.window_manager.event_timer_remove(self._timer)
         return self._finish(context, job)

@@ -17,7 +17,7 @@ view, lower resolution, 20 kHz), ``eval0`` held out, above and between the pair,
 ``--eval-fps``. RGB/eval frames are 8-bit sRGB PNGs rendered with the Standard view
 transform (plain sRGB encoding, no tone curve). The spike stream is simulated from
 linear light rendered at the spike resolution at ``--light-hz``:
-``engine.spike_sim.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
+``engine.spike.simulate.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
 gain map and a little dark current; linear white (1.0) fires every ``1/light_scale``
 frames. No ``points.ply`` is written, so the engine's stereo initialisation is exercised.
 """
@@ -40,7 +40,7 @@ if str(REPO) not in sys.path:
 
 import bpy  # noqa: E402
 
-from bt4d_addon import scene_build  # noqa: E402
+from bt4d_addon import blender_cameras  # noqa: E402
 from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
 
 PRESETS = {
@@ -73,7 +73,10 @@ PHOTONS_PER_THRESHOLD = 1000.0  # Poisson shot noise on each frame's charge
 
 # ----------------------------------------------------------------------------- motion
 
-def object_poses(t: float, speed: float = 1.0) -> dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]]:
+Vec3 = tuple[float, float, float]
+
+
+def object_poses(t: float, speed: float = 1.0) -> dict[str, tuple[Vec3, Vec3]]:
     """World location and XYZ Euler rotation (radians) of each moving object at time t (s);
     ``speed`` scales every motion (the paths stay the same, traversed ``speed`` times faster)."""
     t = t * speed
@@ -261,7 +264,7 @@ def rig(rgb_size, spike_size, scene) -> dict:
                           role="eval" if name.startswith("eval") else "train")
     cams["spike0"] = dict(intr=rgb_intr.scaled(*spike_size), c2w=cams["rgb0"]["c2w"].copy(), role="train")
     for name, cam in cams.items():
-        cam["object"] = scene_build.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
+        cam["object"] = blender_cameras.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
     return cams
 
 
@@ -269,7 +272,7 @@ def rig(rgb_size, spike_size, scene) -> dict:
 
 def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
     scene.camera = cam["object"]
-    scene_build.configure_render(scene, cam["intr"])
+    blender_cameras.configure_render(scene, cam["intr"])
     st = scene.render.image_settings
     if fmt == "PNG":
         st.file_format = "PNG"
@@ -288,12 +291,13 @@ def render_to(scene, cam: dict, path: Path, fmt: str) -> None:
         raise RuntimeError(f"Cycles did not write {path}")
 
 
-def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"), stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def stereo_pointmap(scene, cams: dict, out: Path, names=("rgb0", "rgb1"),
+                    stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The scene points seen by each pixel (every ``stride``-th) of the stereo pair at the
     current time, coloured from that camera's rendered frame 0: what a dense two-view
     pointmap (DUSt3R, which the paper uses and we cannot run offline) estimates, here exact.
     Pixel rays follow the OpenCV pinhole model of ``engine.cameras`` (x right, y down, z forward)."""
-    from engine.images import read_image
+    from engine.io.images import read_image
 
     bpy.context.view_layer.update()
     depsgraph = bpy.context.evaluated_depsgraph_get()
@@ -322,7 +326,7 @@ def frame_times(seconds: float, fps: float) -> np.ndarray:
 def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -> np.ndarray:
     """Linear Rec.709 luminance at the spike camera for each time: (T, H, W) float32."""
     from engine.colour import luminance
-    from engine.images import read_image
+    from engine.io.images import read_image
 
     out = np.empty((len(times), cam["intr"].height, cam["intr"].width), np.float32)
     for i, t in enumerate(times):
@@ -337,7 +341,7 @@ def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -
 
 
 def write_pointmap(scene, objs, cams, out: Path, cfg: dict) -> Path:
-    from engine.capture import write_points
+    from engine.io.points import write_points
 
     set_time(objs, 0.0, cfg["speed"])
     xyz, rgb = stereo_pointmap(scene, cams, out)
@@ -447,8 +451,8 @@ def main(argv=None) -> int:
         log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
             f"{spike_cam['intr'].width}x{spike_cam['intr'].height}")
 
-    from engine.spike_sim import make_gain_map, simulate_spikes
-    from engine.spikes import write_spikes
+    from engine.io.spikes import write_spikes
+    from engine.spike.simulate import make_gain_map, simulate_spikes
 
     h, w = light.shape[1:]
     gain = make_gain_map(h, w, GAIN_STD, args.seed + 1)

@@ -24,9 +24,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from engine.capture import load_capture  # noqa: E402
-from engine.metrics import motion_masks, psnr  # noqa: E402
-from engine.model import load_run  # noqa: E402
+from engine.evaluate.metrics import motion_masks, psnr  # noqa: E402
+from engine.io.capture import load_capture  # noqa: E402
+from engine.scene.model import load_run  # noqa: E402
 
 
 def train_view_scores(scene, cap, threshold: float = 0.04, dilate: int = 2) -> dict:

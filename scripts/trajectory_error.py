@@ -145,9 +145,9 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
 def main(argv=None) -> int:
     import torch
 
-    from engine.capture import load_capture
-    from engine.model import load_run
-    from engine.spike_guidance import spike_stream_info
+    from engine.io.capture import load_capture
+    from engine.scene.model import load_run
+    from engine.train.spike_guidance import spike_stream_info
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("capture")

@@ -131,6 +131,6 @@ def run_python(code: str, *, timeout: float = 300, env: dict | None = None, cwd:
 
 
 def write_png(path: Path, img) -> None:
-    from engine.images import write_png as _write
+    from engine.io.images import write_png as _write
 
     _write(path, img)

@@ -1,9 +1,11 @@
-"""A tiny stand-in for engine.model.Scene4D: Gaussians moving linearly in time, rendered by
+"""A tiny stand-in for engine.scene.model.Scene4D: Gaussians moving linearly in time, rendered by
 an obviously-correct numpy EWA splatter (3DGS rules: 0.3 px^2 dilation, pixel centres at
 +0.5, alpha capped at 0.99, alpha < 1/255 skipped, front-to-back by depth)."""
 from __future__ import annotations
 
 import numpy as np
+
+from engine.scene.model import Scene4D
 
 
 def quat_to_mat(q):
@@ -52,7 +54,10 @@ def splat(g, view, background=None):
 
 
 class FakeScene4D:
-    """N Gaussians in a small cluster around ``center``, moving with constant velocity."""
+    """N Gaussians in a small cluster around ``center``, moving with constant velocity.
+    ``sample`` is the real ``Scene4D.sample`` (it only needs ``gaussians_at``)."""
+
+    sample = Scene4D.sample
 
     def __init__(self, n=40, seed=0, time_range=(0.0, 0.2), center=(0.0, 0.0, 0.0), speed=2.0):
         rng = np.random.default_rng(seed)
@@ -71,8 +76,8 @@ class FakeScene4D:
         return dict(means=(self.m0 + t * self.vel).astype(np.float32), quats=self.quats.copy(),
                     scales=self.scales.copy(), opacities=self.opac.copy(), colors=self.colors.copy())
 
-    def render(self, views, background=None):
-        return [splat(self.gaussians_at(v.time), v, background) for v in views]
+    def render(self, views, background=None, time=None):
+        return [splat(self.gaussians_at(v.time if time is None else time), v, background) for v in views]
 
 
 def make_fake_capture(root, *, width=64, height=48, rgb_fps=30.0, eval_fps=150.0, duration=0.2, n=40, seed=0):
@@ -82,7 +87,7 @@ def make_fake_capture(root, *, width=64, height=48, rgb_fps=30.0, eval_fps=150.0
     from pathlib import Path
 
     from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.images import write_png
+    from engine.io.images import write_png
 
     root = Path(root)
     model = FakeScene4D(n=n, seed=seed, time_range=(0.0, duration))

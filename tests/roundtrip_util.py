@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-import pytest
-
 import blender_util
+import pytest
 
 MY_OPERATOR_MODULES = ("reconstruct", "load_result", "render_path", "bullet_time")
 
@@ -20,11 +19,6 @@ def enable():
 
     mod = blender_util.enable_addon()
     base = blender_util.ADDON_MODULE
-    if not hasattr(bpy.types.Scene, "bt4d_run"):
-        pr = importlib.import_module(f"{base}.bt4d_addon.panel_run")
-        for cls in pr.classes:
-            bpy.utils.register_class(cls)
-        pr.register()
     for name in MY_OPERATOR_MODULES:
         m = importlib.import_module(f"{base}.operators.{name}")
         for cls in m.classes:

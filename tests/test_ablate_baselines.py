@@ -4,10 +4,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.baselines import (KINDS, baseline_frames, reinhard_transfer, rgb_to_lab_reinhard,
-                              spike_to_gray, with_baseline)
-from engine.capture import load_capture
-from engine.spike_render import _luma_at_spike_res, estimate_sensor
+from engine.io.capture import load_capture
+from engine.spike.render import _luma_at_spike_res, estimate_sensor
+from engine.train.baselines import (
+    KINDS,
+    baseline_frames,
+    reinhard_transfer,
+    rgb_to_lab_reinhard,
+    spike_to_gray,
+    with_baseline,
+)
 
 
 @pytest.fixture(scope="module")

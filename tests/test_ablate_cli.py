@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from engine.__main__ import COMMANDS
-from engine.cli import ablate
+from tools import ablate
+from tools.__main__ import COMMANDS
 
 
 def _fakes(calls):

@@ -11,9 +11,8 @@ import textwrap
 import tomllib
 import zipfile
 
-import pytest
-
 import blender_util
+import pytest
 from blender_util import REPO_ROOT
 
 
@@ -64,10 +63,12 @@ def test_zip_holds_the_extension_and_nothing_else(built_zip):
     names = zipfile.ZipFile(built_zip).namelist()
     for required in ("blender_manifest.toml", "__init__.py", "bt4d_addon/__init__.py", "bt4d_addon/panel.py",
                      "operators/__init__.py", "operators/import_capture.py", "engine/__init__.py",
-                     "engine/capture.py", "demo_capture/transforms.json"):
+                     "engine/io/capture.py", "engine/train/trainer.py", "demo_capture/transforms.json"):
         assert required in names, required
     for n in names:
-        assert not n.startswith(("tests/", "scripts/", ".venv/", ".git", ".ci/", "runs/", "dist/", "build/")), n
+        assert not n.startswith(("tests/", "scripts/", "tools/", ".venv/", ".git", ".ci/", "runs/", "dist/",
+                                 "build/")), n
+        assert not any(w in n for w in ("bench", "stress", "ablate", "synthetic")), n  # development tools
         assert "__pycache__" not in n and not n.endswith(".pyc"), n
         assert not n.split("/")[-1].startswith("."), n
     assert built_zip.stat().st_size < 20e6
@@ -91,6 +92,7 @@ ENABLE_SCRIPT = textwrap.dedent("""
     mod = addon_utils.enable("bl_ext.bt4d_test.bullettime4d", default_set=True, handle_error=errors.append)
     out["module"] = getattr(mod, "__name__", None)
     out["errors"] = [repr(e) for e in errors]
+    out["torch_at_enable"] = "torch" in sys.modules  # Blender ships without torch
     out["op"] = hasattr(bpy.ops.bt4d, "import_capture") and "import_capture" in dir(bpy.ops.bt4d)
     out["panels"] = [n for n in ("BT4D_PT_capture", "BT4D_PT_reconstruction", "BT4D_PT_result",
                                  "BT4D_PT_bullet_time") if getattr(bpy.types, n, None) is not None]
@@ -117,6 +119,7 @@ def test_enable_and_disable_through_extension_repository(demo_capture, copy):
     res, log = blender_util.run_python(ENABLE_SCRIPT.replace("COPY", str(copy)))
     assert res is not None, log
     assert res["module"] == "bl_ext.bt4d_test.bullettime4d" and not res["errors"], log
+    assert res["torch_at_enable"] is False, log  # the engine's torch modules load on first use
     assert res["op"], log
     assert res["panels"] == ["BT4D_PT_capture", "BT4D_PT_reconstruction", "BT4D_PT_result", "BT4D_PT_bullet_time"]
     assert res["prefs"] == "BT4D_AddonPreferences"

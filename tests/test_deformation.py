@@ -7,8 +7,8 @@ import pytest
 import torch
 from torch import nn
 
-from engine.deformation import PLANES, DeformationField, HexPlane, make_field, time_resolution_for
-from engine.presets import get_preset
+from engine.scene.deformation import PLANES, DeformationField, HexPlane, make_field, time_resolution_for
+from engine.train.presets import get_preset
 
 
 def _field(**kw):

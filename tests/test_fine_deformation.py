@@ -6,11 +6,10 @@ import pytest
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.fine_deformation import (FineDeformation, count_parameters, project_to_grid,
-                                     sinusoidal_encoding)
-from engine.spike_features import SpikeWindowCache, bracket, window_textures
-from engine.spike_sim import simulate_spikes
-from engine.spikes import SpikeStream, write_spikes
+from engine.io.spikes import SpikeStream, write_spikes
+from engine.scene.fine_deformation import FineDeformation, count_parameters, project_to_grid, sinusoidal_encoding
+from engine.spike.features import SpikeWindowCache, bracket, window_textures
+from engine.spike.simulate import simulate_spikes
 
 
 def _moving_bar(h=24, w=32, n=600, rate=20000.0):
@@ -81,6 +80,7 @@ def _window(stream):
     return SpikeWindowCache(stream, [0.0, 0.01, 0.02, 0.03], k_sub=6).window(0.015)
 
 
+@pytest.mark.slow
 def test_fine_feature_starts_at_zero_and_learns_time(stream):
     torch.manual_seed(0)
     w = _window(stream)

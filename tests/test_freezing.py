@@ -1,4 +1,4 @@
-"""engine.freezing: CPOStream-style prediction (freeze after K quiet checks) and observation
+"""engine.train.freezing: CPOStream-style prediction (freeze after K quiet checks) and observation
 (wake under a residual), densification bookkeeping, motion of a deformation field, flicker."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from engine.freezing import (Freezer, abrupt_mask, deformation_motion, residual_map, residual_scores,
-                             static_flicker)
+from engine.evaluate.flicker import static_flicker
+from engine.train.freezing import Freezer, abrupt_mask, deformation_motion, residual_map, residual_scores
 
 
 def test_freezes_after_k_quiet_checks_only():
@@ -82,7 +82,7 @@ def test_state_dict_round_trip():
 
 
 def test_deformation_motion_identity_field_is_zero_and_offset_is_measured():
-    from engine.deformation import DeformationField
+    from engine.scene.deformation import DeformationField
 
     field = DeformationField([-1] * 3, [1] * 3, (0.0, 1.0), features=4, resolution=4, multires=(1,),
                              time_resolution=4, width=8)
@@ -123,7 +123,7 @@ def _moving_field(speed):
 def test_deformation_motion_temporal_spread_and_bake():
     from types import SimpleNamespace
 
-    from engine.freezing import bake_static
+    from engine.train.freezing import bake_static
 
     speed = torch.tensor([0.0, 1.0, 2.0])
     field = _moving_field(speed)
@@ -181,14 +181,14 @@ def test_static_flicker_zero_for_constant_positive_for_noise_and_ignores_motion(
 
 
 def _fake_trainer(n=40):
-    """What TrainFreezer reads from engine.train.Trainer: model, static_steps, total_steps,
+    """What TrainFreezer reads from engine.train.trainer.Trainer: model, static_steps, total_steps,
     frame_times and items (view tensors with a camera name)."""
     from types import SimpleNamespace
 
     from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.deformation import DeformationField
-    from engine.gaussians import GaussianModel
-    from engine.model import Model4D, view_tensors
+    from engine.scene.deformation import DeformationField
+    from engine.scene.gaussians import GaussianModel
+    from engine.scene.model import Model4D, view_tensors
 
     rng = np.random.default_rng(0)
     g = GaussianModel(rng.uniform(-0.5, 0.5, (n, 3)), rng.random((n, 3)), init_opacity=0.5)
@@ -203,7 +203,7 @@ def _fake_trainer(n=40):
 
 
 def test_train_freezer_freezes_static_field_follows_prune_wakes_and_checkpoints():
-    from engine.freezing import TrainFreezer
+    from engine.train.freezing import TrainFreezer
 
     tr = _fake_trainer()
     fz = TrainFreezer(tr, k_checks=2, check_every=1, start_fraction=0.0, wake_residual=0.5)

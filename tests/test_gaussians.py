@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from engine.gaussians import (GaussianModel, eval_sh, knn_mean_distance, num_sh_bases, rgb_to_sh,
-                              sh_to_rgb)
-from engine.presets import get_preset
+from engine.scene.gaussians import GaussianModel, eval_sh, knn_mean_distance, num_sh_bases, rgb_to_sh, sh_to_rgb
+from engine.train.presets import get_preset
 
 
 def _model(n=6, sh_degree=0, seed=0):

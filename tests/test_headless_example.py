@@ -12,18 +12,18 @@ import shutil
 import subprocess
 import sys
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 import roundtrip_util
 from roundtrip_util import reconstructed, run_tmp  # noqa: F401  (fixtures)
 
 pytest.importorskip("bpy")
 
 
+@pytest.mark.slow
 def test_headless_example_script(reconstructed, demo_capture, tmp_path):
-    from engine.images import read_exr_channels
+    from engine.io.images import read_exr_channels
 
     out = tmp_path / "example"
     shutil.copytree(reconstructed["run_dir"], out / "runs" / demo_capture.name)

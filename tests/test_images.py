@@ -10,7 +10,7 @@ import torch
 
 from engine import colour
 from engine.errors import CaptureError
-from engine.images import (
+from engine.io.images import (
     encode_png,
     read_exr_channels,
     read_image,
@@ -86,6 +86,7 @@ def _encode_png16_filters(q: np.ndarray) -> bytes:
             + chunk(b"IDAT", zlib.compress(bytes(out))) + chunk(b"IEND", b""))
 
 
+@pytest.mark.slow
 def test_png16_all_filter_types(tmp_path):
     rng = np.random.default_rng(2)
     q = rng.integers(0, 65536, size=(10, 7, 3), dtype=np.uint16)
@@ -96,7 +97,7 @@ def test_png16_all_filter_types(tmp_path):
 
 
 def test_png16_python_fallback_decoder(tmp_path, monkeypatch):
-    import engine.images as im
+    import engine.io.images as im
 
     q = np.random.default_rng(4).integers(0, 65536, size=(6, 5, 3), dtype=np.uint16)
     p = tmp_path / "f.png"

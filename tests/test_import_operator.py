@@ -8,10 +8,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 
@@ -47,7 +46,7 @@ def _cam(k: Intrinsics, role="train"):
 def make_capture(root: Path, *, n_rgb=3, rgb_fps=30.0, eval_fps=90.0, moving_left=False,
                  spike_frames=100, seed=0) -> Path:
     """A small capture: left/right (train), spk (spikes, co-located with left), ev (eval)."""
-    from engine.spikes import write_spikes
+    from engine.io.spikes import write_spikes
 
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
@@ -128,7 +127,7 @@ def shown_file(cam_obj, scene_frame: int) -> int:
 # ----------------------------------------------------------------------------- the demo capture
 
 def test_import_demo_capture(scene, demo_capture):
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     cap = load_capture(demo_capture)
     before = blender_util.datablock_counts()
@@ -196,20 +195,20 @@ def addon_module(sub: str):
 
 def test_projection_matches_pinhole_model(scene, tiny):
     """World points land within 0.5 px of engine.cameras.project_points (fx != fy, off-centre)."""
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     cap = load_capture(tiny)
     assert import_capture(tiny) == {"FINISHED"}
     assert scene.camera.name == "left"
     # the import set the scene up for the main camera; fx != fy goes into the pixel aspect
     assert scene.render.pixel_aspect_y / scene.render.pixel_aspect_x == pytest.approx(LEFT.fx / LEFT.fy)
-    scene_build = addon_module("bt4d_addon.scene_build")
+    cameras = addon_module("bt4d_addon.blender_cameras")
     checked = 0
     for name, info in cap.cameras.items():
         k = info.intrinsics
         obj = bpy.data.objects[name]
         if name != "left":  # other cameras: set the scene up for them as a renderer would
-            scene_build.configure_render(scene, k)
+            cameras.configure_render(scene, k)
         c2w = np.array(obj.matrix_world)
         pts = points_in_view(k, c2w)
         expected, depth = project_points(View(k, c2w), pts)
@@ -230,18 +229,19 @@ def test_projection_matches_pinhole_model(scene, tiny):
 ])
 def test_camera_params_round_trip(addon, scene, k):
     """camera_params -> Blender camera -> intrinsics_from_camera gives back the pinhole model."""
-    scene_build = addon_module("bt4d_addon.scene_build")
+    cameras = addon_module("bt4d_addon.blender_cameras")
     data = bpy.data.cameras.new("probe")
-    p = scene_build.apply_intrinsics(data, k)
-    fx, fy, cx, cy = scene_build.intrinsics_from_camera(data, k.width, k.height,
-                                                        p["pixel_aspect_x"], p["pixel_aspect_y"])
+    p = cameras.apply_intrinsics(data, k)
+    back = cameras.intrinsics_from_camera(data, k.width, k.height, p["pixel_aspect_x"], p["pixel_aspect_y"])
+    fx, fy, cx, cy = back.fx, back.fy, back.cx, back.cy
+    assert (back.width, back.height) == (k.width, k.height)
     assert (fx, fy, cx, cy) == pytest.approx((k.fx, k.fy, k.cx, k.cy), rel=1e-6, abs=1e-6)
     # and the projection through a real object agrees
-    scene_build.configure_render(scene, k)
+    cameras.configure_render(scene, k)
     c2w = look_at_c2w((1.0, -3.0, 2.0), (0.0, 0.5, 0.3))
     obj = bpy.data.objects.new("probe", data)
     scene.collection.objects.link(obj)
-    obj.matrix_world = scene_build.matrix_from_rows(c2w)
+    obj.matrix_world = cameras.matrix_from_rows(c2w)
     bpy.context.view_layer.update()
     pts = points_in_view(k, c2w, n=20, seed=3)
     expected, _ = project_points(View(k, c2w), pts)
@@ -249,7 +249,7 @@ def test_camera_params_round_trip(addon, scene, k):
 
 
 def test_moving_camera_is_keyframed_per_frame_time(scene, tmp_path):
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     root = make_capture(tmp_path / "moving", moving_left=True, n_rgb=4)
     cap = load_capture(root)
@@ -265,7 +265,7 @@ def test_moving_camera_is_keyframed_per_frame_time(scene, tmp_path):
 
 def test_fps_option_and_eval_sequence(scene, tiny):
     """fps=90 puts the 90 FPS eval camera one file per scene frame, the 30 FPS RGB every 3rd."""
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     t0, t1 = load_capture(tiny).time_range   # the spike stream (0.1 s) outlasts the RGB frames
     assert import_capture(tiny, fps=90) == {"FINISHED"}
@@ -355,8 +355,8 @@ def test_missing_folder_is_reported(scene, tmp_path):
 
 def test_failure_while_building_rolls_back(scene, tiny, monkeypatch):
     """If building fails half-way (after some cameras exist), nothing is left behind."""
-    scene_build = addon_module("bt4d_addon.scene_build")
-    real = scene_build.create_camera_object
+    cameras = addon_module("bt4d_addon.blender_cameras")
+    real = cameras.create_camera_object
     calls = []
 
     def flaky(name, *a, **kw):
@@ -365,7 +365,7 @@ def test_failure_while_building_rolls_back(scene, tiny, monkeypatch):
             raise RuntimeError("simulated failure")
         return real(name, *a, **kw)
 
-    monkeypatch.setattr(scene_build, "create_camera_object", flaky)
+    monkeypatch.setattr(cameras, "create_camera_object", flaky)
     before = blender_util.datablock_counts()
     with pytest.raises(RuntimeError, match="simulated failure"):
         import_capture(tiny)

@@ -1,12 +1,19 @@
 """Frame interpolation (RIFE stand-ins) and the block colour loss (paper Eq. 18-20)."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
-from engine.interpolation import (avg_pool_blocks, block_colour_loss, resample_area, flow_interpolate, interpolate,
-                                  linear_blend, lk_flow, warp)
+from engine.train.interpolation import (
+    avg_pool_blocks,
+    block_colour_loss,
+    flow_interpolate,
+    interpolate,
+    linear_blend,
+    lk_flow,
+    resample_area,
+    warp,
+)
 
 
 def _texture(h=64, w=80, seed=0):
@@ -108,7 +115,7 @@ def test_block_colour_loss_any_size_at_between_scale(size, scale):
     frame of any size (161x121 used to raise "block grids differ") against the pooled
     frame; a render of the frame's own (area-downscaled) content costs ~nothing and a
     brighter one costs the brightness step."""
-    from engine.spike_guidance import scaled_view
+    from engine.train.spike_guidance import scaled_view
 
     W, H = size
     yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")

@@ -9,10 +9,9 @@ import subprocess
 import sys
 import textwrap
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 import roundtrip_util
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 
@@ -43,7 +42,7 @@ def _instance_positions(obj):
 
 def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     from engine.colour import srgb_to_linear
-    from engine.model import load_run
+    from engine.scene.model import load_run
 
     run_dir = reconstructed["run_dir"]
     obj, gn = _load(run_dir, num_samples=4)
@@ -53,7 +52,8 @@ def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     assert (N, K) == (model.num_gaussians, 4) and len(mesh.vertices) == N * K
     times = np.array(mesh["bt4d_times"])
     np.testing.assert_allclose(times, np.linspace(*model.time_range, 4), atol=1e-6)
-    for name in (gn.ATTR_ROT, gn.ATTR_SCALE, gn.ATTR_OPACITY, gn.ATTR_COLOR):
+    attrs = roundtrip_util.addon_module("bt4d_addon.attributes")
+    for name in (attrs.ROT.name, attrs.SCALE.name, attrs.OPACITY.name, attrs.COLOR.name):
         assert name in mesh.attributes
     # sample 2 holds the model at times[2]
     g = model.gaussians_at(float(times[2]))
@@ -61,7 +61,7 @@ def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     mesh.vertices.foreach_get("co", co)
     np.testing.assert_allclose(co.reshape(K, N, 3)[2], g["means"], atol=1e-5)
     col = np.empty(N * K * 4, np.float32)
-    mesh.attributes[gn.ATTR_COLOR].data.foreach_get("color", col)
+    mesh.attributes[attrs.COLOR.name].data.foreach_get("color", col)
     np.testing.assert_allclose(col.reshape(K, N, 4)[2, :, :3], srgb_to_linear(g["colors"]), atol=1e-5)
     # the modifier shows sample 2 when Capture Time is times[2]
     gn.key_capture_time(obj, [(1, float(times[2])), (2, float(times[2]))])
@@ -93,10 +93,11 @@ def _cycles_setup(scene, cam, res_pct=40, samples=16):
         scene.world = bpy.data.worlds.new("black")
 
 
+@pytest.mark.slow
 def test_cycles_render_matches_engine(rt_scene, reconstructed, demo_capture, tmp_path):
     from engine.colour import linear_to_srgb
-    from engine.images import read_image_rgba
-    from engine.model import load_run
+    from engine.io.images import read_image_rgba
+    from engine.scene.model import load_run
 
     bc = roundtrip_util.addon_module("bt4d_addon.blender_cameras")
     assert bpy.ops.bt4d.import_capture(directory=str(demo_capture)) == {"FINISHED"}

@@ -2,16 +2,16 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from engine.capture import load_capture
 from engine.colour import luminance, srgb_to_linear
-from engine.images import read_image
+from engine.io.capture import load_capture
+from engine.io.images import read_image
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,6 +27,7 @@ def tiny_capture(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_generated_capture_loads_with_the_expected_rig(tiny_capture):
     cap = load_capture(tiny_capture)
     assert set(cap.cameras) == {"rgb0", "rgb1", "spike0", "eval0"}
@@ -54,6 +55,7 @@ def test_generated_capture_loads_with_the_expected_rig(tiny_capture):
         assert f.load_rgb().shape == (f.intrinsics.height, f.intrinsics.width, 3)
 
 
+@pytest.mark.slow
 def test_spikes_agree_with_the_co_located_rgb_frame(tiny_capture):
     """Spike counts over a window ~ linear luminance of rgb0 / 3 (white fires every 3rd frame)."""
     cap = load_capture(tiny_capture)
@@ -68,6 +70,7 @@ def test_spikes_agree_with_the_co_located_rgb_frame(tiny_capture):
     assert rate.max() <= 0.6  # nothing saturates to fire every frame
 
 
+@pytest.mark.slow
 def test_rgb_frames_are_plain_srgb_pngs(tiny_capture):
     cap = load_capture(tiny_capture)
     f = cap.frames[0]

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from engine.metrics import is_interframe, motion_mask, motion_masks, psnr, ssim
+from engine.evaluate.metrics import is_interframe, motion_mask, motion_masks, psnr, ssim
 
 
 def test_psnr_known_values_and_mask():

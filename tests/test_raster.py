@@ -12,10 +12,9 @@ import pytest
 import torch
 
 from engine.cameras import Intrinsics, View, c2w_gl_from_viewmat, project_points
-from engine.raster import rasterization, resolve_backend
 from engine.raster import cpu as raster_cpu
-from engine.raster import gsplat_backend
-from engine.raster.projection import eval_colors, project_gaussians, SH_C0
+from engine.raster import gsplat_backend, rasterization, resolve_backend
+from engine.raster.projection import SH_C0, eval_colors, project_gaussians
 
 NEEDS_NUMBA = pytest.mark.skipif(not raster_cpu.available(), reason="numba unavailable")
 
@@ -54,7 +53,10 @@ def make_scene(N=60, W=37, H=29, C=1, seed=0, sh_degree=None, dtype=torch.float3
     viewmats = torch.tensor(np.stack([look_viewmat(e) for e in eyes]))
     f = 0.9 * W
     Ks = torch.tensor([[f, 0, W / 2 + 0.3], [0, f * 1.05, H / 2 - 0.2], [0, 0, 1]]).repeat(C, 1, 1)
-    to = lambda t: t.to(dtype)
+
+    def to(t):
+        return t.to(dtype)
+
     return dict(means=to(means), quats=to(quats), scales=to(scales), opacities=to(opac),
                 colors=to(colors), viewmats=to(viewmats), Ks=to(Ks), width=W, height=H,
                 sh_degree=sh_degree)
@@ -234,6 +236,7 @@ def test_tile_size_does_not_change_result():
     assert_grads_close(a["grads"], b["grads"], rel=1e-4)
 
 
+@pytest.mark.slow
 def test_gradcheck_reference_float64():
     sc = make_scene(N=4, W=7, H=6, C=2, seed=8, sh_degree=1, dtype=torch.float64, scale=0.3,
                     spread=0.5)
@@ -249,6 +252,7 @@ def test_gradcheck_reference_float64():
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
+@pytest.mark.slow
 @NEEDS_NUMBA
 def test_cpu_float64_inputs_give_float64_outputs():
     sc = make_scene(N=30, seed=9, dtype=torch.float64)
@@ -433,6 +437,7 @@ def test_numba_cache_is_per_import_name(tmp_path):
     """Blender imports the engine as bl_ext.<repo>.bullettime4d.engine, the CLI as engine:
     their numba caches must not share entries (a cached entry pickles the import name)."""
     import importlib.util
+
     from engine.raster import _kernels
     spec = importlib.util.spec_from_file_location("bt4d_alias_pkg_kernels", _kernels.__file__)
     alias = importlib.util.module_from_spec(spec)

@@ -8,9 +8,8 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
-
 import blender_util
+import pytest
 import roundtrip_util
 
 bpy = pytest.importorskip("bpy")
@@ -66,6 +65,44 @@ def test_job_messages_cancel_and_errors():
     assert job.finished and "bad capture file x.png" in job.error and "Traceback" in job.error_traceback
 
 
+def test_job_run_sync_and_pump():
+    """run_sync(progress) hands each progress message over as it is sent and returns a
+    finished job; pump drains a threaded job into its watchers and finishes it once."""
+    worker = roundtrip_util.addon_module("bt4d_addon.worker")
+
+    def target(progress, cancel, n):
+        for i in range(n):
+            progress({"step": i + 1, "running": worker.is_running("test")})
+        return {"status": "finished"}
+
+    seen = []
+    job = worker.Job(target, kind="test", n=3).run_sync(seen.append)
+    assert seen == [{"step": i, "running": True} for i in (1, 2, 3)]
+    assert job.finished and job.result == {"status": "finished"} and not worker.is_running("test")
+
+    gate = threading.Event()
+
+    def gated(progress, cancel):
+        progress({"step": 1})
+        gate.wait(5)
+        progress({"step": 2})
+        return "done"
+
+    progressed, finished = [], []
+    job = worker.Job(gated, kind="test").watch(progressed.append, finished.append).start()
+    assert worker.active_job("test") is job and worker.is_running("test")
+    deadline = time.monotonic() + 5
+    while not progressed and time.monotonic() < deadline:
+        assert job.pump()
+        time.sleep(0.01)
+    assert progressed == [{"step": 1}] and not finished
+    gate.set()
+    job.join(5)
+    assert job.pump() is False and job.pump() is False
+    assert progressed == [{"step": 1}, {"step": 2}] and finished == [job] and job.result == "done"
+    assert worker.active_job("test") is None and not worker.is_running("test")
+
+
 def test_reconstruct_background_mode(reconstructed):
     info = reconstructed
     assert info["op_result"] == {"FINISHED"}
@@ -101,38 +138,37 @@ def test_threaded_reconstruct_cancel_then_resume(scene, demo_capture, tmp_path):
     scene.bt4d.preset = "fast"
     scene.bt4d.use_spikes = False
     n_objects = len(bpy.data.objects)
-    rec.FORCE_THREAD = True
 
-    def pump(poll, until, deadline):
+    def pump(job, until, deadline):
         while not until() and time.monotonic() < deadline:  # the timer's job, pumped by hand
-            if poll() is None:
+            if not job.pump():
                 return
             time.sleep(0.1)
 
-    try:
-        assert bpy.ops.bt4d.reconstruct(iterations=16) == {"FINISHED"}  # returns at once
-        poll = rec.LAST_POLL
-        r = scene.bt4d_run
-        assert r.status == "RUNNING" and worker.is_running(rec.KIND)
-        deadline = time.monotonic() + 180
-        pump(poll, lambda: r.step >= 2, deadline)
-        assert 0 < r.progress < 1 and r.total_steps == 16 and r.loss > 0
-        assert bpy.ops.bt4d.cancel_reconstruction() == {"FINISHED"}
-        pump(poll, lambda: False, deadline)
-        assert r.status == "CANCELLED", r.message
-        assert not worker.is_running(rec.KIND)
-        run = Path(r.run_dir)
-        assert json.loads((run / "run.json").read_text())["status"] == "cancelled"
-        assert (run / "checkpoint.pt").exists()
-        stopped = r.step
-        assert len(bpy.data.objects) == n_objects  # nothing brought back
-        # Resume (the default) picks the checkpoint up: cancelled again at once, it reports
-        # that it resumed from the step where the first run stopped
-        assert bpy.ops.bt4d.reconstruct(iterations=16) == {"FINISHED"}
-        bpy.ops.bt4d.cancel_reconstruction()
-        pump(rec.LAST_POLL, lambda: False, deadline)
-    finally:
-        rec.FORCE_THREAD = False
+    # run_mode THREAD: the interactive path (worker thread + timer) inside the bpy module,
+    # where bpy.app.background is True and no timer fires; the test pumps the job instead
+    assert bpy.ops.bt4d.reconstruct(iterations=16, run_mode="THREAD") == {"FINISHED"}  # returns at once
+    job = worker.active_job(rec.KIND)
+    r = scene.bt4d_run
+    assert r.status == "RUNNING" and worker.is_running(rec.KIND) and job is not None
+    deadline = time.monotonic() + 180
+    pump(job, lambda: r.step >= 2, deadline)
+    assert 0 < r.progress < 1 and r.total_steps == 16 and r.loss > 0
+    assert bpy.ops.bt4d.cancel_reconstruction() == {"FINISHED"}
+    pump(job, lambda: False, deadline)
+    assert r.status == "CANCELLED", r.message
+    assert not worker.is_running(rec.KIND)
+    run = Path(r.run_dir)
+    assert json.loads((run / "run.json").read_text())["status"] == "cancelled"
+    assert (run / "checkpoint.pt").exists()
+    stopped = r.step
+    assert len(bpy.data.objects) == n_objects  # nothing brought back
+    # Resume (the default) picks the checkpoint up: cancelled again at once, it reports
+    # that it resumed from the step where the first run stopped
+    assert bpy.ops.bt4d.reconstruct(iterations=16, run_mode="THREAD") == {"FINISHED"}
+    job = worker.active_job(rec.KIND)
+    bpy.ops.bt4d.cancel_reconstruction()
+    pump(job, lambda: False, deadline)
     meta = json.loads((run / "run.json").read_text())
     assert meta["resumed_from"] == stopped and meta["status"] == "cancelled"
     assert r.status == "CANCELLED" and r.step == stopped

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 import roundtrip_util
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 
@@ -22,9 +21,9 @@ def _setup(run_dir, demo_capture):
 
 
 def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_path):
-    from engine.colour import linear_to_srgb
-    from engine.images import read_exr_channels
-    from engine.model import load_run
+    from engine.colour import srgb_to_linear
+    from engine.io.images import read_exr_channels
+    from engine.scene.model import load_run
 
     scene, obj, gn = _setup(reconstructed["run_dir"], demo_capture)
     scene.frame_start, scene.frame_end = 1, 4
@@ -60,12 +59,15 @@ def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_pat
     assert np.abs(img[2] - img[0]).max() > 1e-3                    # camera moved
     assert np.abs(img[3] - img[2]).max() > 1e-3
     assert np.all(np.isfinite(chans[0]["Z"])) and chans[0]["Z"][chans[0]["A"] > 0.5].max() < 1e3
-    # the EXR is the engine's exact render of that camera at that time (linear)
+    # the EXR is the engine's exact render of that camera at that time (linear light,
+    # premultiplied: the straight sRGB colour decoded, then multiplied by alpha)
     bc = roundtrip_util.addon_module("bt4d_addon.blender_cameras")
     scene.frame_set(3)
     view = bc.camera_to_view(orbit, scene, time=t_frozen)
     ref = load_run(reconstructed["run_dir"]).render([view], background=(0, 0, 0))[0]
-    np.testing.assert_allclose(np.clip(linear_to_srgb(img[2][..., :3]), 0, 1), ref["rgb"], atol=2e-4)
+    a = ref["alpha"][..., None]
+    straight = np.where(a > 1e-6, ref["rgb"] / np.maximum(a, 1e-6), 0.0).clip(0, 1)
+    np.testing.assert_allclose(img[2][..., :3], srgb_to_linear(straight) * a, atol=2e-4)
     np.testing.assert_allclose(img[2][..., 3], ref["alpha"], atol=1e-5)
     # loaded back as an image sequence
     name = scene.get("bt4d_last_render")
@@ -74,7 +76,7 @@ def test_orbit_at_frozen_time_exr(rt_scene, reconstructed, demo_capture, tmp_pat
 
 
 def test_unfrozen_time_changes_images_and_png_numbering(rt_scene, reconstructed, demo_capture, tmp_path):
-    from engine.images import read_image_rgba
+    from engine.io.images import read_image_rgba
 
     scene, obj, gn = _setup(reconstructed["run_dir"], demo_capture)
     scene.camera = bpy.data.objects["eval0"]  # static camera
@@ -103,21 +105,27 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     """The path-render job in a worker thread (stand-in model): straight-alpha RGBA PNGs,
     EXR Z where something was hit, and cancel keeps the frames written so far."""
     import threading
+    import time
+
+    from roundtrip_fakes import FakeScene4D
 
     from engine.cameras import Intrinsics, View, look_at_c2w
-    from engine.images import read_exr_channels, read_image_rgba
-    from roundtrip_fakes import FakeScene4D
+    from engine.io.images import read_exr_channels, read_image_rgba
 
     worker = roundtrip_util.addon_module("bt4d_addon.worker")
     model = FakeScene4D(n=10, seed=2)
     k = Intrinsics(24, 18, 22.0, 22.0, 12.0, 9.0)
     views = [View(k, look_at_c2w([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]), 0.1) for a in (0.0, 0.5, 1.0)]
     outs = [str(tmp_path / f"f{i}.png") for i in range(3)]
-    job = worker.Job(worker.render_views_job, scene4d=model, views=views, outputs=outs, file_format="PNG",
-                     transparent=True).start()
-    job.join(60)
-    job.poll()
+    # pumped as the modal operator's timer does
+    progress = []
+    job = worker.Job(worker.render_views_job, kind="test_render", scene4d=model, views=views, outputs=outs,
+                     file_format="PNG", transparent=True).watch(progress.append).start()
+    deadline = time.monotonic() + 60
+    while job.pump() and time.monotonic() < deadline:
+        time.sleep(0.02)
     assert job.result["status"] == "finished" and job.result["written"] == outs
+    assert [(p["step"], p["total_steps"], p["path"]) for p in progress] == [(i + 1, 3, o) for i, o in enumerate(outs)]
     ref = model.render(views[:1])[0]
     img = read_image_rgba(outs[0])
     np.testing.assert_allclose(img[..., 3], ref["alpha"], atol=1 / 255 + 1e-6)
@@ -128,9 +136,9 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     gate = threading.Event()
 
     class Slow(FakeScene4D):
-        def render(self, views, background=None):
+        def render(self, views, background=None, time=None):
             gate.wait(10)
-            return super().render(views, background)
+            return super().render(views, background, time)
 
     job = worker.Job(worker.render_views_job, scene4d=Slow(n=10, seed=2), views=views, outputs=exr).start()
     job.cancel()

@@ -15,7 +15,7 @@ def _axis_angle_quat(axis, angle):
 
 
 def _rot(q):
-    from engine.gaussians import quat_to_rotmat
+    from engine.scene.gaussians import quat_to_rotmat
     return quat_to_rotmat(q[None])[0]
 
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import json
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 
@@ -22,7 +21,6 @@ def empty_scene():
 
 def _blender_project(obj, scene, pts):
     """Project with Blender's own camera matrix (calc_matrix_camera) -> pixels from top-left."""
-    from mathutils import Vector
 
     W, H = bc.render_size(scene)
     r = scene.render
@@ -124,7 +122,7 @@ def test_imported_capture_camera_round_trip(demo_capture):
     import blender_util
     import roundtrip_util
 
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
 
     roundtrip_util.enable()
     blender_util.reset_scene()

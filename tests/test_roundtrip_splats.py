@@ -3,10 +3,9 @@ stand-in Scene4D (tests/roundtrip_fakes.py): interpolation in time, a headless C
 render, and a saved + reopened .blend that renders the same."""
 from __future__ import annotations
 
+import blender_util
 import numpy as np
 import pytest
-
-import blender_util
 
 bpy = pytest.importorskip("bpy")
 
@@ -17,7 +16,7 @@ from bt4d_addon import gaussian_material as gm  # noqa: E402
 from bt4d_addon import gaussian_nodes as gn  # noqa: E402
 from engine.cameras import look_at_c2w  # noqa: E402
 from engine.colour import linear_to_srgb, srgb_to_linear  # noqa: E402
-from engine.images import read_image_rgba  # noqa: E402
+from engine.io.images import read_image_rgba  # noqa: E402
 
 # Measured (64x48, 32 samples): 23.0 dB against the engine-style splatter, which blends
 # sRGB-encoded colours; 36 dB against the same splatter blending linear colours (what
@@ -36,7 +35,7 @@ def scene():
 
 
 def _setup(scene, model, K=5):
-    samples = gn.sample_scene(model, K)
+    samples = model.sample(K)
     obj = gn.build_result_object("Result", samples)
     gn.key_capture_time(obj, [(1, model.time_range[0]), (11, model.time_range[1])])
     gm.configure_scene_for_splats(scene)

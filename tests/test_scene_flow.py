@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from engine.cameras import Intrinsics, View, look_at_c2w, project_points
-from engine.geometry.scene_flow import backproject_pixels, carry_by_flow, image_flow
+from engine.train.scene_flow import backproject_pixels, carry_by_flow, image_flow
 
 
 def _view():
@@ -54,7 +54,7 @@ def test_image_flow_finds_a_shift():
 
 
 def test_hidden_gaussians_follow_their_nearest_decided_neighbour():
-    from engine.geometry.scene_flow import propagate_to_hidden
+    from engine.train.scene_flow import propagate_to_hidden
 
     pos = np.array([[0.0, 0, 0], [0.01, 0, 0], [1.0, 0, 0], [0.02, 0, 0], [5.0, 0, 0]])
     delta = np.zeros((5, 3), np.float32)

@@ -1,19 +1,17 @@
-"""Skipping spike windows with no change (engine.spike_change) and the fine-feature gate."""
+"""Skipping spike windows with no change (engine.spike.change) and the fine-feature gate."""
 from __future__ import annotations
 
 import shutil
-import types
 
 import numpy as np
 import pytest
 import torch
-
-from engine.capture import load_capture
-from engine.spike_change import block_change_statistic, detect_change
-from engine.spike_sim import simulate_spikes
-from engine.spikes import write_spikes
-
 from test_spike_guidance import _ctx, _fake_trainer
+
+from engine.io.capture import load_capture
+from engine.io.spikes import write_spikes
+from engine.spike.change import block_change_statistic, detect_change
+from engine.spike.simulate import simulate_spikes
 
 
 def _rates(spikes: np.ndarray, intervals: int, k_sub: int = 8) -> list[np.ndarray]:
@@ -74,7 +72,7 @@ def test_block_statistic_shape_and_value():
 def test_gate_samples_the_dilated_change_map():
     changed = np.zeros((1, 4, 4), bool)
     changed[0, 0, 0] = True
-    from engine.spike_change import SpikeChange
+    from engine.spike.change import SpikeChange
 
     ch = SpikeChange(np.zeros((1, 4, 4), np.float32), changed, 0.1, 0.01, 4, (16, 16))
     grid = torch.tensor([[-0.9, -0.9], [0.9, 0.9], [-0.4, -0.4]])  # block (0,0), far corner, dilated ring
@@ -101,7 +99,7 @@ def static_capture(demo_capture, tmp_path_factory):
 
 
 def test_guidance_skips_every_window_of_a_static_stream(static_capture, demo_capture):
-    from engine.spike_guidance import SpikeGuidance
+    from engine.train.spike_guidance import SpikeGuidance
 
     tr = _fake_trainer(static_capture, between_colocated_p=1.0)
     g = SpikeGuidance(tr)
@@ -118,8 +116,8 @@ def test_guidance_skips_every_window_of_a_static_stream(static_capture, demo_cap
 
 
 def test_fine_feature_is_gated_off_where_the_spike_view_never_changes(static_capture, demo_capture):
-    from engine.deformation import DeformationField
-    from engine.spike_guidance import make_fine_encoder
+    from engine.scene.deformation import DeformationField
+    from engine.train.spike_guidance import make_fine_encoder
 
     field = DeformationField([-3, -3, -1], [3, 3, 3], (0.0, 0.2), features=4, resolution=4, multires=(1,),
                              time_resolution=4, width=16)
@@ -142,7 +140,7 @@ def test_fine_feature_is_gated_off_where_the_spike_view_never_changes(static_cap
 
 def test_static_prior_holds_gaussians_where_the_spike_view_never_changes(static_capture, demo_capture):
     from engine.cameras import look_at_c2w  # noqa: F401  (the demo rig is look-at cameras)
-    from engine.spike_guidance import SpikeGuidance
+    from engine.train.spike_guidance import SpikeGuidance
 
     cap = load_capture(demo_capture)
     g = SpikeGuidance(_fake_trainer(cap))
@@ -173,9 +171,9 @@ def test_static_prior_holds_gaussians_where_the_spike_view_never_changes(static_
 
 
 def test_model_applies_saves_and_restores_the_static_prior():
-    from engine.deformation import DeformationField
-    from engine.gaussians import GaussianModel
-    from engine.model import Model4D
+    from engine.scene.deformation import DeformationField
+    from engine.scene.gaussians import GaussianModel
+    from engine.scene.model import Model4D
 
     rng = np.random.default_rng(0)
     g = GaussianModel(rng.uniform(-1, 1, (20, 3)).astype(np.float32), rng.uniform(0, 1, (20, 3)).astype(np.float32))

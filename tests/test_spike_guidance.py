@@ -7,10 +7,18 @@ import numpy as np
 import pytest
 import torch
 
-from engine.capture import load_capture
-from engine.model import view_tensors
-from engine.spike_guidance import (DEFAULTS, SpikeFineEncoder, SpikeGuidance, _block_term, _spike_term,
-                                   make_fine_encoder, scaled_view, spike_stream_info)
+from engine.io.capture import load_capture
+from engine.scene.fine_deformation import SpikeFineEncoder
+from engine.scene.model import view_tensors
+from engine.train.presets import TrainConfig
+from engine.train.spike_guidance import (
+    SpikeGuidance,
+    _block_term,
+    _spike_term,
+    make_fine_encoder,
+    scaled_view,
+    spike_stream_info,
+)
 
 
 class _FakeModel(torch.nn.Module):
@@ -34,7 +42,7 @@ def _fake_trainer(cap, **cfg):
         vt["image"] = torch.from_numpy(f.load_rgb())[None]
         vt["index"], vt["camera"] = i, f.camera
         items.append(vt)
-    conf = types.SimpleNamespace(**{**DEFAULTS, "block_interp": "linear", **cfg})
+    conf = TrainConfig().replace(**{"block_interp": "linear", **cfg})
     return types.SimpleNamespace(capture=cap, cfg=conf, items=items, seed=0, model=_FakeModel(), deform_opt=None)
 
 
@@ -112,7 +120,7 @@ def test_no_spike_stream_skips_spike_branch(cap):
 
 
 def test_fine_encoder_hook_and_spec_rebuild(cap):
-    from engine.deformation import DeformationField
+    from engine.scene.deformation import DeformationField
 
     field = DeformationField([-3, -3, -1], [3, 3, 3], (0.0, 0.2), features=4, resolution=4, multires=(1,),
                              time_resolution=4, width=16)
@@ -159,12 +167,12 @@ def test_scaled_view_keeps_field_of_view(cap):
 # ----------------------------------------------------------------------------- with the real trainer
 
 def _integrated() -> bool:
-    from engine.presets import TrainConfig
+    from engine.train.presets import TrainConfig
     return hasattr(TrainConfig, "spike_loss_weight")
 
 
 needs_trainer_integration = pytest.mark.skipif(not _integrated(), reason="spike guidance not wired into "
-                                               "engine.train / engine.presets yet")
+                                               "engine.train / engine.train.presets yet")
 
 _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init_random_points": 100,
          "densify_from": 2.0, "densify_until": 2.0, "fine_d_model": 16, "fine_channels": 8, "fine_k_sub": 4,
@@ -173,9 +181,10 @@ _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init
 
 @needs_trainer_integration
 def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_path):
-    from engine.model import load_run
-    from engine.presets import get_preset
-    from engine.train import Trainer, train
+    from engine.scene.model import load_run
+    from engine.train import train
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
 
     tr = Trainer(cap, get_preset("fast", _TINY), device="cpu")
     assert {t.name for t in tr.loss_terms} >= {"spike", "block_colour"}
@@ -210,8 +219,8 @@ def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_
 def test_rgb_only_and_spikeless_captures_skip_the_spike_branch(cap):
     import dataclasses
 
-    from engine.presets import get_preset
-    from engine.train import Trainer
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
 
     rgb = Trainer(cap, get_preset("fast", _TINY), device="cpu", rgb_only=True)
     assert not {"spike", "block_colour"} & {t.name for t in rgb.loss_terms} and not rgb.deformation_hooks
@@ -251,9 +260,10 @@ def test_between_instants_follow_the_trainers_time_curriculum(cap):
     assert max(g.between(_ctx(tr, step=s))["instant"].time for s in range(60, 120)) > 0.1
 
 
+@pytest.mark.slow
 def test_block_targets_are_pooled_cached_and_close_to_the_exact_instant(cap, monkeypatch):
-    from engine import spike_guidance as sg
-    from engine.interpolation import avg_pool_blocks
+    from engine.train import spike_guidance as sg
+    from engine.train.interpolation import avg_pool_blocks
 
     tr = _fake_trainer(cap, block_interp="flow")
     g = SpikeGuidance(tr)
@@ -282,7 +292,7 @@ def test_run_renders_its_fine_branch_without_the_capture(demo_capture, tmp_path)
     import torch as _t
 
     from engine.errors import RunError
-    from engine.model import load_run
+    from engine.scene.model import load_run
     from engine.train import train
 
     copy = tmp_path / "capture"

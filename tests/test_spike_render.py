@@ -6,10 +6,19 @@ import pytest
 import torch
 
 from engine.colour import linear_to_srgb
-from engine.spike_render import (SensorModel, SpikeRenderer, cumulative_spike_loss, expected_counts,
-                                 fit_sensor, heaviside_surrogate, integrate_and_fire, resample_to,
-                                 sensor_light, spike_count_loss)
-from engine.spike_sim import make_gain_map, simulate_spikes
+from engine.spike.render import (
+    SensorModel,
+    SpikeRenderer,
+    cumulative_spike_loss,
+    expected_counts,
+    fit_sensor,
+    heaviside_surrogate,
+    integrate_and_fire,
+    resample_to,
+    sensor_light,
+    spike_count_loss,
+)
+from engine.spike.simulate import make_gain_map, simulate_spikes
 
 
 def _srgb_image(h=40, w=60, seed=0):
@@ -138,8 +147,8 @@ def test_fit_sensor_recovers_scale_dark_and_gain():
     gain = make_gain_map(h, w, 0.15, seed=4)
     luma = rng.uniform(0.05, 0.8, size=(F, h, w))
     n = 2000
-    rates = np.stack([simulate_spikes(l * 0.7, rate_hz=20000, num_frames=n, gain=gain, dark_current=0.03,
-                                      seed=i).sum(0) / n for i, l in enumerate(luma)])
+    rates = np.stack([simulate_spikes(lum * 0.7, rate_hz=20000, num_frames=n, gain=gain, dark_current=0.03,
+                                      seed=i).sum(0) / n for i, lum in enumerate(luma)])
     s = fit_sensor(luma, rates, width=w, height=h, gain_shrink=0.01)
     # global fit sees gain * (0.7 L + 0.03) with E[gain] ~ 1
     assert abs(s.scale - 0.7 * gain.mean()) < 0.05

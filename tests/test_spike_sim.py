@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import engine
-from engine.spike_sim import iter_spike_chunks, make_gain_map, simulate_spikes, simulate_spikes_to_file, tfi, tfp
-from engine.spikes import read_spikes
+from engine.io.spikes import read_spikes
+from engine.spike.simulate import iter_spike_chunks, make_gain_map, simulate_spikes, simulate_spikes_to_file, tfi, tfp
 
 
 def test_lazy_exports():
@@ -94,7 +94,7 @@ def test_seed_reproducible_and_chunking_invariant():
 
 
 def test_numpy_fallback_matches_compiled(monkeypatch):
-    import engine.spike_sim as sim
+    import engine.spike.simulate as sim
 
     light = np.random.default_rng(1).random((3, 10, 12)) * 0.8
     kw = dict(rate_hz=1000, num_frames=200, light_times=[0, 0.05, 0.2], seed=3, gain=make_gain_map(10, 12, 0.2),

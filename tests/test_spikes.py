@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from engine.errors import CaptureError
-from engine.spikes import SpikeStream, count_frames, read_spikes, write_spikes
+from engine.io.spikes import SpikeStream, count_frames, read_spikes, write_spikes
 
 
 def _random_stream(n=7, h=6, w=16, seed=0):
@@ -54,7 +54,7 @@ def test_head_cols_dropped(tmp_path):
 
 @pytest.mark.parametrize("h, w, head", [(6, 16, 8), (4, 12, 4), (3, 8, 0), (5, 24, 0)])
 def test_packed_fast_path_and_general_path_agree(h, w, head):
-    from engine.spikes import decode_frames, encode_frames
+    from engine.io.spikes import decode_frames, encode_frames
 
     s = _random_stream(5, h, w, seed=h + w)
     for flip in (True, False):
@@ -122,7 +122,7 @@ def test_spike_stream_num_frames_limit(tmp_path):
 def _tiny_capture(root):
     import json
 
-    from engine.images import write_png
+    from engine.io.images import write_png
 
     write_png(root / "rgb" / "a.png", np.zeros((6, 16, 3)))
     s = np.zeros((50, 6, 16), np.uint8)
@@ -140,7 +140,7 @@ def _tiny_capture(root):
 
 def test_cli_spikes_info_and_tfp(tmp_path, capsys):
     from engine.__main__ import main
-    from engine.images import read_exr_channels, read_image
+    from engine.io.images import read_exr_channels, read_image
 
     _tiny_capture(tmp_path)
     out = tmp_path / "tfp.png"
@@ -156,7 +156,7 @@ def test_cli_spikes_info_and_tfp(tmp_path, capsys):
 
 
 def test_cli_bench_decode_runs_and_checks(capsys):
-    from engine.__main__ import main
+    from tools.__main__ import main
 
     assert main(["bench-decode", "--width", "16", "--height", "4", "--frames", "9", "--repeat", "1",
                  "--python-frames", "2"]) == 0

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from engine import stress
+from tools import stress, stress_checks, synthetic
 
 STEPS = 40
 OPT_CASES = ["scale_tiny", "scale_huge", "scale_range", "opacity_zero", "opacity_threshold",
              "opacity_saturated", "near_plane", "degenerate_cov", "extent_tiny", "extent_huge",
-             "empty_view", "long_time"]
+             "empty_view", pytest.param("long_time", marks=pytest.mark.slow)]
 
 
 @pytest.mark.parametrize("name", OPT_CASES)
@@ -41,16 +41,16 @@ def test_spike_streams_all_zero_and_all_one():
 
 
 def test_fp32_fast_path_matches_fp64_reference():
-    r = stress.compare_fp32_fp64(seed=3)
-    assert r["image"] < stress.FP_TOL["image"] and r["alpha"] < stress.FP_TOL["alpha"]
-    assert r["depth"] < stress.FP_TOL["depth"]
-    for k in stress.PARAM_ORDER:
-        assert r[f"grad_{k}"] < stress.FP_TOL["grad"], (k, r)
+    r = stress_checks.compare_fp32_fp64(seed=3)
+    assert r["image"] < stress_checks.FP_TOL["image"] and r["alpha"] < stress_checks.FP_TOL["alpha"]
+    assert r["depth"] < stress_checks.FP_TOL["depth"]
+    for k in stress_checks.PARAM_ORDER:
+        assert r[f"grad_{k}"] < stress_checks.FP_TOL["grad"], (k, r)
         assert r[f"nonfinite_{k}"] == 0
 
 
 def test_long_time_normalisation_is_finite():
-    from engine.deformation import DeformationField
+    from engine.scene.deformation import DeformationField
 
     f = DeformationField([-1] * 3, [1] * 3, (0.0, 1e4), features=4, resolution=4, multires=(1,),
                          time_resolution=4, width=8)
@@ -62,7 +62,7 @@ def test_long_time_normalisation_is_finite():
 
 @pytest.mark.parametrize("name", ["pose_nan", "pose_inf", "intrinsics_nan", "time_nan"])
 def test_nonfinite_capture_records_rejected_naming_the_file(tmp_path, name):
-    recs = {r["name"]: r for r in stress.bad_input_checks(tmp_path)}
+    recs = {r["name"]: r for r in stress_checks.bad_input_checks(tmp_path)}
     r = recs[name]
     assert r["rejected"], r
     assert r["names_file"] and "transforms.json" in r["message"], r
@@ -70,19 +70,19 @@ def test_nonfinite_capture_records_rejected_naming_the_file(tmp_path, name):
 
 
 def test_nan_pixels_rejected_naming_the_image(tmp_path):
-    from engine.capture import load_capture
     from engine.errors import CaptureError
+    from engine.io.capture import load_capture
 
     img = np.full((8, 8, 3), 0.5, np.float32)
     img[2, 3, 1] = np.nan
-    stress._write_tiny_capture(tmp_path / "cap", image=img, exr=True)
+    synthetic.write_tiny_capture(tmp_path / "cap", image=img, exr=True)
     cap = load_capture(tmp_path / "cap")
     with pytest.raises(CaptureError, match="f0.exr"):
         cap.frames[0].load_rgb()
 
 
 def test_cli_quick_subset_prints_count_last(capsys):
-    from engine.__main__ import main
+    from tools.__main__ import main
 
     rc = main(["stress", "--steps", "3", "--cases", "empty_view,fp32_vs_fp64", "--no-progress"])
     out = capsys.readouterr().out.strip().splitlines()
@@ -91,6 +91,7 @@ def test_cli_quick_subset_prints_count_last(capsys):
     assert any(line.startswith("empty_view") for line in out)
 
 
+@pytest.mark.slow
 def test_real_trainer_stays_finite_on_a_tiny_capture():
     res = stress.run_case("trainer", 20)
     assert res.failures == [] and res.nonfinite == 0, res.to_dict()

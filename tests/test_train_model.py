@@ -1,4 +1,4 @@
-"""Trained-run API (engine.model), camera files and renders (engine.render_views), init points."""
+"""Trained-run API (engine.scene.model), camera files and renders (engine.export.render_views), init points."""
 from __future__ import annotations
 
 import json
@@ -6,14 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.capture import load_capture
+from engine.cameras import Intrinsics, look_at_c2w
 from engine.errors import CaptureError, RunError
-from engine.init_points import cameras_focus, initial_points, random_points, stereo_points
-from engine.model import load_run, read_export
-from engine.render_views import (orbit_views, read_camera_file, synthetic_scene, views_to_records,
-                                 write_renders, write_synthetic_capture)
+from engine.export.npz import export_npz, read_export
+from engine.export.render_views import orbit_views, read_camera_file, views_to_records, write_renders
+from engine.geometry.init_points import cameras_focus, initial_points, random_points, stereo_points
+from engine.io.capture import load_capture
+from engine.scene.model import SAMPLE_KEYS, auto_num_samples, load_run
 from engine.train import train
+from tools.synthetic import synthetic_scene, write_synthetic_capture
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +54,8 @@ def test_scene_gaussians_at_and_render(trained):
     views = [c.view(c.eval_frames[0]), c.view(c.frames[0])]
     out = scene.render(views)
     assert len(out) == 2
-    assert out[0]["rgb"].shape == (24, 32, 3) and out[0]["alpha"].shape == (24, 32) and out[0]["depth"].shape == (24, 32)
+    assert out[0]["rgb"].shape == (24, 32, 3)
+    assert out[0]["alpha"].shape == (24, 32) and out[0]["depth"].shape == (24, 32)
     # the wall sits 3.5 m in front of the cameras: covered pixels have depth near it
     d = out[1]["depth"][out[1]["alpha"] > 0.9]
     assert d.size and 2.0 < np.median(d) < 4.5
@@ -66,7 +68,7 @@ def test_export_round_trip(trained, tmp_path):
     _, run = trained
     scene = load_run(run)
     times = np.linspace(0, 2 / 30, 4)
-    path = scene.export(times, tmp_path / "cache.npz")
+    path = export_npz(scene, times, tmp_path / "cache.npz")
     data = read_export(path)
     assert data["times"].shape == (4,) and "means_t" in data and str(data["means_mode"]) == "residual_f16"
     assert data["means_t"].dtype == np.float16
@@ -97,7 +99,8 @@ def test_camera_files_both_schemas(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"frames": [{"camera": "nope", "transform_matrix": c2w}]}))
     with pytest.raises(CaptureError, match="unknown camera"):
         read_camera_file(tmp_path / "bad.json")
-    (tmp_path / "bad2.json").write_text(json.dumps({"frames": [{"w": 4, "h": 4, "fl_x": 1, "transform_matrix": [[1]]}]}))
+    bad = {"frames": [{"w": 4, "h": 4, "fl_x": 1, "transform_matrix": [[1]]}]}
+    (tmp_path / "bad2.json").write_text(json.dumps(bad))
     with pytest.raises(CaptureError, match="4x4"):
         read_camera_file(tmp_path / "bad2.json")
     with pytest.raises(CaptureError, match="does not exist"):
@@ -112,7 +115,7 @@ def read_camera_file_from(tmp_path, records):
 
 def test_write_renders_png_and_exr(trained, tmp_path):
     from engine.colour import srgb_to_linear
-    from engine.images import read_exr_channels, read_image_rgba
+    from engine.io.images import read_exr_channels, read_image_rgba
 
     cap, run = trained
     scene = load_run(run)
@@ -130,9 +133,58 @@ def test_write_renders_png_and_exr(trained, tmp_path):
     ch = read_exr_channels(paths[0])
     assert set("RGBAZ") <= set(ch)
     np.testing.assert_allclose(ch["A"], ref["alpha"], atol=1e-6)
-    lin = srgb_to_linear(np.clip(ref["rgb"] / np.maximum(ref["alpha"], 1e-6)[..., None], 0, 1)) * ref["alpha"][..., None]
+    straight = np.clip(ref["rgb"] / np.maximum(ref["alpha"], 1e-6)[..., None], 0, 1)
+    lin = srgb_to_linear(straight) * ref["alpha"][..., None]
     np.testing.assert_allclose(ch["R"][ok], lin[..., 0][ok], atol=1e-4)
     np.testing.assert_allclose(ch["Z"][ok], ref["depth"][ok], rtol=1e-5)
+
+
+def test_scene_sample_stacks_gaussians_at_even_times(trained):
+    """Scene4D.sample: K evenly spaced capture times, each slice equal to gaussians_at(t_k)."""
+    _, run = trained
+    scene = load_run(run)
+    n = scene.num_gaussians
+    s = scene.sample(4)
+    t0, t1 = scene.time_range
+    np.testing.assert_allclose(s["times"], np.linspace(t0, t1, 4))
+    assert s["means"].shape == (4, n, 3) and s["quats"].shape == (4, n, 4) and s["scales"].shape == (4, n, 3)
+    assert s["opacities"].shape == (4, n) and s["colors"].shape == (4, n, 3)
+    assert all(s[k].dtype == np.float32 for k in SAMPLE_KEYS)
+    g = scene.gaussians_at(float(s["times"][2]))
+    for k in SAMPLE_KEYS:
+        np.testing.assert_array_equal(s[k][2], g[k])
+    assert not np.array_equal(s["means"][0], s["means"][-1])  # the deformation moves something
+    sub = scene.sample(3, (0.01, 0.02))
+    np.testing.assert_allclose(sub["times"], [0.01, 0.015, 0.02])
+    assert len(scene.sample(0)["times"]) == auto_num_samples(t1 - t0, n)
+
+
+def test_auto_num_samples_bounds():
+    assert auto_num_samples(0.0, 100) == 2
+    assert auto_num_samples(1.0, 100) == 151
+    assert auto_num_samples(10.0, 100) == 300                    # max_samples
+    assert auto_num_samples(1.0, 1_000_000) == 4                 # max_points / N
+    assert auto_num_samples(1.0, 10_000_000) == 2
+
+
+def test_write_renders_to_given_paths(trained, tmp_path):
+    """Explicit output files (Blender's frame-numbered names), PNG over a background colour,
+    and two views that would write one file are refused."""
+    from engine.io.images import read_image_rgba
+
+    cap, run = trained
+    scene = load_run(run)
+    c = load_capture(cap)
+    v0, v1 = c.view(c.frames[0]), c.view(c.frames[1])
+    out = [tmp_path / "a" / "shot_0001.png", tmp_path / "b" / "shot_0002.png"]
+    paths = write_renders(scene, [v0, v1], None, "png", paths=out, png_background=(0.0, 1.0, 0.0))
+    assert paths == out and all(p.exists() for p in out)
+    ref = scene.render([v0], background=(0.0, 1.0, 0.0))[0]
+    np.testing.assert_allclose(read_image_rgba(out[0])[..., :3], ref["rgb"], atol=1 / 255 + 1e-6)
+    with pytest.raises(ValueError, match="same output file"):
+        write_renders(scene, [v0, v1], None, "exr", paths=[tmp_path / "x.exr"] * 2)
+    with pytest.raises(ValueError, match="2 views"):
+        write_renders(scene, [v0, v1], None, "exr", paths=[tmp_path / "x.exr"])
 
 
 def test_orbit_views_circle_the_centre():

@@ -5,8 +5,16 @@ import numpy as np
 import pytest
 import torch
 
-from engine.scene.trajectory import (bezier_controls, evaluate, extrapolate_junctions, inner_residuals, junctions,
-                                     num_controls, num_knots, segment_of)
+from engine.scene.trajectory import (
+    bezier_controls,
+    evaluate,
+    extrapolate_junctions,
+    inner_residuals,
+    junctions,
+    num_controls,
+    num_knots,
+    segment_of,
+)
 
 
 def _reference(params: np.ndarray, knots: np.ndarray, t: float) -> np.ndarray:

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from engine.gaussians import GaussianModel
-from engine.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
-from engine.presets import get_preset
+from engine.scene.gaussians import GaussianModel
+from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
 from engine.scene.trajectory import evaluate, junctions, num_controls
+from engine.train.presets import get_preset
 
 KNOTS = [0.0, 0.1, 0.2, 0.3]
 
@@ -110,7 +110,7 @@ def test_trainer_trains_trajectories_end_to_end(demo_capture, tmp_path, motion, 
     rgb-only keeps it quick."""
     import json
 
-    from engine.model import load_run
+    from engine.scene.model import load_run
     from engine.train import train
 
     over = {**_TINY, "motion": motion, "traj_carry": carry}
@@ -137,8 +137,9 @@ def test_trainer_trains_trajectories_end_to_end(demo_capture, tmp_path, motion, 
         ref = (g.means + evaluate(getattr(g, TRAJ_MEANS), m.trajectory["knots"], 0.05)).numpy()
     if m.deformation is None:
         np.testing.assert_allclose(a["means"], ref, atol=1e-6)
-    path = scene.export([0.0, 0.05, 0.1], tmp_path / "cache.npz")
-    from engine.model import read_export
+    from engine.export.npz import export_npz, read_export
+
+    path = export_npz(scene, [0.0, 0.05, 0.1], tmp_path / "cache.npz")
     np.testing.assert_allclose(read_export(path, 1)["means"], a["means"], atol=1e-2)
 
 
@@ -152,12 +153,12 @@ def test_unknown_motion_is_an_error(demo_capture, tmp_path):
 
 def test_rigidity_term_in_a_training_step(demo_capture):
     """The rigidity switch adds a finite loss term that reaches the trajectories."""
-    from engine.train import Trainer
+    from engine.io.capture import load_capture
+    from engine.train.trainer import Trainer
 
     cfg = get_preset("fast", {**_TINY, "motion": "trajectory", "traj_carry": "velocity", "rigidity_weight": 1.0,
                               "densify_from": 2.0, "densify_until": 2.0, "static_fraction": 0.1})
-    tr = Trainer(__import__("engine.capture", fromlist=["x"]).load_capture(demo_capture), cfg, device="cpu",
-                 rgb_only=True)
+    tr = Trainer(load_capture(demo_capture), cfg, device="cpu", rgb_only=True)
     assert "rigidity" in {t.name for t in tr.loss_terms}
     tr.init_model()
     seen = []
@@ -171,9 +172,9 @@ def test_rigidity_term_in_a_training_step(demo_capture):
 def test_spike_guided_steps_move_inner_control_points(demo_capture):
     """With spikes (not rgb_only), the between-frame spike / block colour losses reach the
     trajectories' inner control points (E-NeMF's in-between curve), which RGB instants never touch."""
-    from engine.capture import load_capture
+    from engine.io.capture import load_capture
     from engine.scene.trajectory import inner_residuals
-    from engine.train import Trainer
+    from engine.train.trainer import Trainer
 
     over = {"iterations": 8, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
             "densify_from": 2.0, "densify_until": 2.0, "block_interp": "linear", "between_colocated_p": 1.0,

@@ -3,7 +3,18 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 from pathlib import Path
+
+from tqdm import tqdm
+
+from ..errors import CaptureError, RunError
+from ..evaluate.heldout import evaluate
+from ..export.render_views import orbit_views, write_renders
+from ..io.capture import load_capture
+from ..scene.model import load_run
+from ..train import train
+from .train import parse_overrides
 
 HELP = "train demo_capture (preset fast), evaluate it, render a 36-view bullet-time sweep at mid capture time"
 
@@ -28,7 +39,6 @@ def orbit_for(scene, capture, n: int, degrees: float):
     """Orbit through the eval (or first train) camera around the scene centre at mid time."""
     import numpy as np
 
-    from ..render_views import orbit_views
 
     t_mid = 0.5 * (scene.time_range[0] + scene.time_range[1])
     frames = list(capture.eval_frames) or list(capture.frames)
@@ -44,18 +54,6 @@ def orbit_for(scene, capture, n: int, degrees: float):
 
 
 def main(args) -> int:
-    import threading
-
-    from tqdm import tqdm
-
-    from ..capture import load_capture
-    from ..errors import CaptureError, RunError
-    from ..evaluate import evaluate
-    from ..model import load_run
-    from ..render_views import write_renders
-    from ..train import train
-    from .train import parse_overrides
-
     out = Path(args.out)
     try:
         capture = load_capture(args.capture)

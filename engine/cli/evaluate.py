@@ -4,6 +4,9 @@ from __future__ import annotations
 import json
 import sys
 
+from ..errors import CaptureError, RunError
+from ..evaluate.heldout import evaluate
+
 HELP = "render every role:eval frame of the capture and print PSNR / SSIM as JSON"
 
 
@@ -14,9 +17,6 @@ def add_arguments(p) -> None:
 
 
 def main(args) -> int:
-    from ..errors import CaptureError, RunError
-    from ..evaluate import evaluate
-
     try:
         result = evaluate(args.run, args.capture, device=args.device)
     except (CaptureError, RunError) as exc:

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import sys
 
+from ..errors import RunError
+from ..export.npz import export_npz
+from ..scene.model import load_run
+
 HELP = "export the Gaussians at N instants in [T0, T1] to a compact .npz cache"
 
 
@@ -17,8 +21,6 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     import numpy as np
 
-    from ..errors import RunError
-    from ..model import load_run
 
     try:
         scene = load_run(args.run, device=args.device)
@@ -29,7 +31,7 @@ def main(args) -> int:
         if n < 1:
             raise RunError(args.out, "N must be at least 1")
         times = np.linspace(t0, t1, n)
-        path = scene.export(times, args.out)
+        path = export_npz(scene, times, args.out)
     except RunError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import sys
 
+from ..errors import CaptureError, RunError
+from ..export.render_views import read_camera_file, write_renders
+from ..scene.model import load_run
+
 HELP = "render a run from the cameras in a JSON file (EXR linear RGBA+Z or PNG sRGB)"
 
 
@@ -16,10 +20,6 @@ def add_arguments(p) -> None:
 
 
 def main(args) -> int:
-    from ..errors import CaptureError, RunError
-    from ..model import load_run
-    from ..render_views import read_camera_file, write_renders
-
     try:
         scene = load_run(args.run, device=args.device)
         views = read_camera_file(args.cameras)

@@ -13,6 +13,11 @@ import argparse
 
 import numpy as np
 
+from ..colour import linear_to_srgb
+from ..errors import CaptureError
+from ..io.capture import load_capture
+from ..io.images import write_exr, write_png
+
 HELP = "print a capture's spike stream info and write a TFP (spike count) image"
 
 
@@ -28,11 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
-    from ..capture import load_capture
-    from ..colour import linear_to_srgb
-    from ..errors import CaptureError
-    from ..images import write_exr, write_png
-
     try:
         cap = load_capture(args.capture)
         infos = cap.spike_streams

@@ -1,10 +1,16 @@
 """``python -m engine train CAPTURE --out RUN``: train a 4D Gaussian scene (tqdm progress)."""
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import sys
 import threading
+
+from tqdm import tqdm
+
+from ..errors import CaptureError, RunError
+from ..train import train
 
 HELP = "train a 4D Gaussian scene on a capture folder"
 
@@ -41,12 +47,10 @@ skipping what a scene does not need (all off by default; --set KEY=VALUE, e.g.
                           early_stop_min_delta, early_stop_every_fraction,
                           early_stop_min_deform_fraction, early_stop_proxy_frames
   cull_frustum=true       prune Gaussians outside every train camera's frustum
-Each field of engine.presets.TrainConfig can be set the same way."""
+Each field of engine.train.presets.TrainConfig can be set the same way."""
 
 
 def add_arguments(p) -> None:
-    import argparse
-
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = SKIP_HELP
     p.add_argument("capture", help="capture folder (transforms.json)")
@@ -63,11 +67,6 @@ def add_arguments(p) -> None:
 
 
 def main(args) -> int:
-    from tqdm import tqdm
-
-    from ..errors import CaptureError, RunError
-    from ..train import train
-
     overrides = parse_overrides(args.overrides)
     cancel = threading.Event()
     bar = None

@@ -1,1 +1,4 @@
-"""Geometry from the calibrated RGB pair: initial points, stereo, scene flow."""
+"""Scene geometry from the capture: two-view stereo depth and the initial point cloud.
+
+May import: foundations, ``engine.io``.
+"""

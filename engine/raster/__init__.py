@@ -15,20 +15,16 @@ world-to-camera view matrices, pixel centres at +0.5, expected depth):
 """
 from __future__ import annotations
 
-import os
+import time
 import warnings
 
-# OpenMP threads that spin-wait after a parallel region (libgomp's default) steal the cores
-# from the next parallel region: torch's and numba's runtimes alternate here many times per
-# step, and on a busy 2-core machine forward+backward got ~5x slower (measured 1.1 s vs
-# 0.22 s at 320x240, 50k Gaussians). Passive waiting costs nothing measurable. libgomp
-# reads this when it loads: numba's OpenMP layer loads on its first parallel call (after
-# this line); torch's only if torch was not imported yet. An explicit user setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import torch
 
-import torch  # noqa: E402
-
+# (OMP_WAIT_POLICY is set by engine/__init__.py, imported before this package)
+from . import cpu, gsplat_backend  # both load numba / gsplat only on first use
 from .projection import eval_colors, project_gaussians
+from .reference import composite_dense
+from .torch_tiled import composite_tiles_torch
 
 BACKENDS = ("auto", "cpu", "torch", "reference", "gsplat")
 _DEPTH_EPS = 1e-6  # expected depth is 0 where alpha <= this
@@ -47,12 +43,10 @@ def resolve_backend(backend: str, device: torch.device) -> str:
         raise ValueError(f"unknown rasterizer backend {backend!r}; choose from {BACKENDS}")
     if backend == "auto":
         if device.type == "cuda":
-            from . import gsplat_backend
             if gsplat_backend.available():
                 return "gsplat"
         backend = "cpu"
     if backend == "cpu":
-        from . import cpu
         if device.type != "cpu":
             return "torch"  # the numba kernels work on host memory; the torch path runs anywhere
         if not cpu.available():
@@ -90,39 +84,30 @@ def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, 
 
     which = resolve_backend(backend, means.device)
     if which == "gsplat":
-        from . import gsplat_backend
         return gsplat_backend.rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
             alpha_max=alpha_max, backgrounds=backgrounds, render_depth=render_depth)
 
     C = viewmats.shape[0]
-    if which == "cpu":
-        from .cpu import project
-    else:
-        project = project_gaussians
+    project = cpu.project if which == "cpu" else project_gaussians
     proj = project(means, quats, scales, opacities, viewmats, Ks, width, height,
                    near_plane=near_plane, far_plane=far_plane, eps2d=eps2d)
-    combine = None
-    if which == "cpu":
-        from .cpu import sh_combine as combine
+    combine = cpu.sh_combine if which == "cpu" else None
     rgb = eval_colors(means, colors, viewmats, sh_degree, combine=combine).to(means.dtype)  # [C,N,3]
     feats = torch.cat([rgb, proj.depths[..., None]], -1) if render_depth else rgb
     feats = feats.contiguous()
     ops = opacities.to(means.dtype)[None].expand(C, -1)
 
     if which == "reference":
-        from .reference import composite_dense
         img, alphas = composite_dense(proj.means2d, proj.conics, ops, feats, proj.depths,
                                       proj.radii, width, height, alpha_max=alpha_max)
     elif which == "torch":
-        from .torch_tiled import composite_tiles_torch
         img, alphas = composite_tiles_torch(proj.means2d, proj.conics, ops, feats, proj.depths,
                                             proj.radii_xy, width, height, alpha_max=alpha_max,
                                             tile_size=tile_size)
     else:
-        from .cpu import composite_tiles
-        img, alphas = composite_tiles(proj.means2d, proj.conics, ops, feats, proj.depths,
+        img, alphas = cpu.composite_tiles(proj.means2d, proj.conics, ops, feats, proj.depths,
                                       proj.radii_xy, width, height, alpha_max=alpha_max,
                                       tile_size=tile_size)
 
@@ -147,7 +132,6 @@ def warmup(backend: str = "cpu") -> float:
     """Render and differentiate a tiny scene once so that the numba kernels are compiled
     (first run on a machine: ~30 s) or loaded from numba's cache (~0.5 s) now rather than
     at the first training step. Safe to call from a worker thread. Returns seconds taken."""
-    import time
     t0 = time.perf_counter()
     g = torch.Generator().manual_seed(0)
     n = 16

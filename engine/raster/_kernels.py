@@ -563,7 +563,6 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
     -> out_m2d [C,N,2], out_conic [C,N,3], out_z [C,N], out_radii [C,N,2] int32 (0 = culled).
     Depth-culled Gaussians get zero means2d / conics."""
     N = means.shape[0]
-    C = viewmats.shape[0]
     for chunk in prange((N + PROJ_CHUNK - 1) // PROJ_CHUNK):
         Rq = np.empty((3, 3), np.float64)
         M = np.empty((3, 3), np.float64)

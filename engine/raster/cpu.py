@@ -10,6 +10,8 @@ import threading
 import numpy as np
 import torch
 
+from .projection import Projected
+
 _kernels = None
 _kernels_error: BaseException | None = None
 _lock = threading.Lock()
@@ -21,7 +23,7 @@ def _load():
         with _lock:
             if _kernels is None and _kernels_error is None:
                 try:
-                    from . import _kernels as k
+                    from . import _kernels as k  # lazy: numba compiles / loads its cache here
                     _kernels = k
                 except Exception as exc:  # ImportError, or a broken numba/llvmlite install
                     _kernels_error = exc
@@ -161,7 +163,10 @@ class _Project(torch.autograd.Function):
         means, quats, scales = ctx.args[:3]
         N, C = means.shape[0], ctx.args[3].shape[0]
         dt = means.dtype
-        zeros = lambda shape, g: np.zeros(shape, dt) if g is None else _np(g).astype(dt, copy=False)
+
+        def zeros(shape, g):
+            return np.zeros(shape, dt) if g is None else _np(g).astype(dt, copy=False)
+
         v_means = np.zeros((N, 3), dt)
         v_quats = np.zeros((N, 4), dt)
         v_scales = np.zeros((N, 3), dt)
@@ -207,7 +212,6 @@ def sh_combine(basis: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane=0.01,
             far_plane=1e10, eps2d=0.3):
     """Numba version of ``projection.project_gaussians`` (same rules, same Projected)."""
-    from .projection import Projected
     dt = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
     m2d, con, z, radii_xy = _Project.apply(means, quats.to(dt), scales.to(dt), opacities.detach(),
                                            viewmats.detach(), Ks.detach(), width, height,

@@ -19,7 +19,7 @@ def _load():
             _error = RuntimeError("CUDA is not available")
         else:
             try:
-                import gsplat
+                import gsplat  # lazy: optional, CUDA only
                 _gsplat = gsplat
             except (ImportError, OSError, RuntimeError) as exc:
                 _error = exc

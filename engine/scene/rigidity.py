@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from ..gaussians import quat_to_rotmat
+from .gaussians import quat_to_rotmat
 
 __all__ = ["knn_neighbours", "rigidity_losses"]
 

@@ -1,0 +1,133 @@
+"""The training objective: a list of :class:`LossTerm` evaluated on a :class:`StepContext`.
+
+:func:`default_loss_terms` is the RGB frame loss (L1 + lambda * D-SSIM, paper Eq. 22) plus
+the block L1 (Eq. 20), the stereo depth prior and the deformation regularisers; the spike
+branch adds its terms through the loss factories listed in :mod:`engine.train.trainer`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import torch
+import torch.nn.functional as F
+from pytorch_msssim import ssim
+
+from ..scene.model import TRAJ_MEANS
+from ..scene.rigidity import knn_neighbours, rigidity_losses
+from ..scene.trajectory import inner_residuals
+from .presets import TrainConfig
+
+__all__ = ["LossTerm", "StepContext", "default_loss_terms"]
+
+
+@dataclass
+class LossTerm:
+    """One term of the training objective: ``weight * fn(ctx)``; ``fn`` may return None."""
+
+    name: str
+    weight: float
+    fn: Callable[["StepContext"], torch.Tensor | None]
+    stages: tuple = ("static", "deform")
+
+
+@dataclass
+class StepContext:
+    trainer: Any          # the engine.train.trainer.Trainer running the step
+    step: int
+    stage: str
+    item: dict            # the train frame: view tensors + "image" [1,H,W,3] + "index"
+    rgb: torch.Tensor     # rendered [1,H,W,3]
+    alpha: torch.Tensor   # [1,H,W,1]
+    meta: dict
+    attrs: dict           # deformed Gaussians used for the render
+
+
+def _l1(ctx: StepContext):
+    return (ctx.rgb - ctx.item["image"]).abs().mean()
+
+
+def _dssim(ctx: StepContext):
+    pred = ctx.rgb.permute(0, 3, 1, 2)
+    gt = ctx.item["image"].permute(0, 3, 1, 2)
+    if min(pred.shape[-2:]) < 11:
+        return None
+    return 1.0 - ssim(pred, gt, data_range=1.0, size_average=True)
+
+
+def _block_l1(ctx: StepContext):
+    """L1 between 4x4 average-pooled images (the paper's block supervision, Eq. 20): a
+    wider basin of attraction for displaced objects than per-pixel L1."""
+    k = ctx.trainer.cfg.block_size
+    pred = ctx.rgb.permute(0, 3, 1, 2)
+    if min(pred.shape[-2:]) < 2 * k:
+        return None
+    gt = ctx.item["image"].permute(0, 3, 1, 2)
+    return (F.avg_pool2d(pred, k) - F.avg_pool2d(gt, k)).abs().mean()
+
+
+def _stereo_depth(ctx: StepContext):
+    """Relative L1 between the rendered expected depth and confident stereo depth (the
+    calibrated pair sees every RGB instant twice: geometry the eval viewpoint relies on)."""
+    target = ctx.item.get("stereo_depth")
+    depth = ctx.meta.get("depths")
+    if target is None or depth is None:
+        return None
+    m = ctx.item["stereo_mask"]
+    gt = target[m]
+    return ((depth[0, ..., 0][m] - gt).abs() / gt).mean()
+
+
+def _deform_reg(ctx: StepContext):
+    d = ctx.trainer.model.deformation
+    cfg = ctx.trainer.cfg
+    if d is None or not ctx.trainer.model.use_deformation:
+        return None
+    smooth = cfg.spike_time_smooth_weight if ctx.trainer.guided else cfg.time_smooth_weight
+    return d.regularization(cfg.tv_weight, smooth, cfg.time_l1_weight)
+
+
+def _traj_reg(ctx: StepContext):
+    """Mean squared inner-point residual of the trajectories / extent^2 (engine.scene.trajectory):
+    with zero residuals the in-between motion is the Catmull-Rom curve through the RGB
+    instants; only the between-frame losses have a reason to bend it."""
+    m = ctx.trainer.model
+    if m.trajectory is None or not m.use_deformation:
+        return None
+    d = inner_residuals(getattr(m.gaussians, TRAJ_MEANS))
+    if d.numel() == 0:
+        return None
+    return (d ** 2).sum(-1).mean() / ctx.trainer.extent ** 2
+
+
+def _rigidity(ctx: StepContext):
+    """Luiten et al.'s local rigidity (rigidity + rotation similarity + isometry over kNN,
+    engine.scene.rigidity) between the canonical Gaussians and the render's instant; the
+    neighbours are recomputed when the Gaussians change (densification) or every 100 steps."""
+    tr, g = ctx.trainer, ctx.trainer.model.gaussians
+    cache = getattr(tr, "_rigidity_nbrs", None)
+    if cache is None or cache[0] != g.num_gaussians or ctx.step - cache[1] >= 100:
+        nbr, w = knn_neighbours(g.means.detach(), int(tr.cfg.rigidity_k))
+        cache = tr._rigidity_nbrs = (g.num_gaussians, ctx.step, nbr, w)
+    parts = rigidity_losses(g.means.detach(), g.quats.detach(), ctx.attrs["means"], ctx.attrs["quats"],
+                            cache[2], cache[3])
+    return (parts["rigid"] + parts["rot"] + parts["iso"]) / tr.extent
+
+
+MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")
+
+
+def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
+    terms = [LossTerm("l1", 1.0 - cfg.lambda_dssim, _l1)]
+    if cfg.lambda_dssim > 0:
+        terms.append(LossTerm("dssim", cfg.lambda_dssim, _dssim))
+    if cfg.lambda_block > 0:
+        terms.append(LossTerm("block_l1", cfg.lambda_block, _block_l1))
+    if cfg.lambda_depth > 0:
+        terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
+    terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
+    if cfg.rigidity_weight > 0:
+        terms.append(LossTerm("rigidity", cfg.rigidity_weight, _rigidity, stages=("deform",)))
+    if "trajectory" in cfg.motion and cfg.traj_inner_weight > 0:
+        terms.append(LossTerm("traj_reg", cfg.traj_inner_weight, _traj_reg, stages=("deform",)))
+    return terms
