@@ -23,8 +23,8 @@ class PointAttribute:
 ROT = PointAttribute("bt4d_rot", "quats", "QUATERNION", "value", 4)          # (w, x, y, z), normalised
 SCALE = PointAttribute("bt4d_scale", "scales", "FLOAT_VECTOR", "vector", 3)  # sigmas along the local axes
 OPACITY = PointAttribute("bt4d_opacity", "opacities", "FLOAT", "value", 1)   # peak opacity in [0, 1]
-COLOR = PointAttribute("bt4d_color", "colors", "FLOAT_COLOR", "color", 4)    # LINEAR RGBA (alpha 1)
-POINT_ATTRIBUTES = (ROT, SCALE, OPACITY, COLOR)
+COLOUR = PointAttribute("bt4d_color", "colors", "FLOAT_COLOR", "color", 4)    # LINEAR RGBA (alpha 1)
+POINT_ATTRIBUTES = (ROT, SCALE, OPACITY, COLOUR)
 
 # custom properties of the sample mesh
 NUM_GAUSSIANS = "bt4d_num_gaussians"   # N

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import bpy
 
-from .attributes import COLOR, OPACITY
+from .attributes import COLOUR, OPACITY
 
 MATERIAL_NAME = "BT4D Gaussian"
 ALPHA_MAX = 0.99  # the engine's (3DGS) alpha cap
@@ -82,7 +82,7 @@ def ensure_material():
     g = math("EXPONENT", math("MULTIPLY", d2, -0.5, (0, 100)), None, (150, 100))
 
     opac = node("ShaderNodeAttribute", (-150, -150), attribute_type="INSTANCER", attribute_name=OPACITY.name)
-    color = node("ShaderNodeAttribute", (-150, -400), attribute_type="INSTANCER", attribute_name=COLOR.name)
+    color = node("ShaderNodeAttribute", (-150, -400), attribute_type="INSTANCER", attribute_name=COLOUR.name)
     a = math("MULTIPLY", g, opac.outputs["Fac"], (300, 50))
     a = math("MINIMUM", a, ALPHA_MAX, (450, 50))
     front = math("SUBTRACT", 1.0, geom.outputs["Backfacing"], (450, -100))

@@ -83,14 +83,14 @@ def build_sample_mesh(name: str, samples: dict):
         q[k, flip] *= -1
     scales = np.asarray(samples[A.SCALE.sample_key], dtype=np.float32).reshape(K * N, 3)
     opac = np.clip(np.asarray(samples[A.OPACITY.sample_key], dtype=np.float32).reshape(K * N), 0.0, 1.0)
-    col = np.asarray(samples[A.COLOR.sample_key], dtype=np.float32).reshape(K * N, 3)
+    col = np.asarray(samples[A.COLOUR.sample_key], dtype=np.float32).reshape(K * N, 3)
     lin = np.clip(srgb_to_linear(np.clip(col, 0.0, None)), 0.0, None).astype(np.float32)
     rgba = np.concatenate([lin, np.ones((K * N, 1), np.float32)], axis=1)
 
     mesh = bpy.data.meshes.new(name)
     mesh.vertices.add(K * N)
     mesh.vertices.foreach_set("co", means.reshape(-1))
-    values = {A.ROT: q, A.SCALE: scales, A.OPACITY: opac, A.COLOR: rgba}
+    values = {A.ROT: q, A.SCALE: scales, A.OPACITY: opac, A.COLOUR: rgba}
     for attr in A.POINT_ATTRIBUTES:
         a = mesh.attributes.new(attr.name, attr.data_type, "POINT")
         a.data.foreach_set(attr.value_key, values[attr].reshape(-1))
@@ -223,7 +223,7 @@ def ensure_node_group(material=None):
     rot = sampled(A.ROT.data_type, named(A.ROT.name, A.ROT.data_type), "ROTATION", -300)
     scl = sampled(A.SCALE.data_type, named(A.SCALE.name, A.SCALE.data_type), "VECTOR", -500)
     opa = sampled(A.OPACITY.data_type, named(A.OPACITY.name, A.OPACITY.data_type), "FLOAT", -700)
-    col = sampled(A.COLOR.data_type, named(A.COLOR.name, A.COLOR.data_type), "RGBA", -900)
+    col = sampled(A.COLOUR.data_type, named(A.COLOUR.name, A.COLOUR.data_type), "RGBA", -900)
 
     pts = b.node("GeometryNodePoints", (300, 300))
     b.link(out("Gaussians"), pts.inputs["Count"])
@@ -231,7 +231,7 @@ def ensure_node_group(material=None):
     pts.inputs["Radius"].default_value = 0.01
     geo = pts.outputs[0]
     # stored on the points: the material reads them as instancer attributes
-    for attr, field, x in ((A.OPACITY, opa, 950), (A.COLOR, col, 1050)):
+    for attr, field, x in ((A.OPACITY, opa, 950), (A.COLOUR, col, 1050)):
         st = b.node("GeometryNodeStoreNamedAttribute", (x, 300), data_type=attr.data_type, domain="POINT")
         st.inputs["Name"].default_value = attr.name
         b.link(geo, st.inputs["Geometry"])

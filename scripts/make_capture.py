@@ -6,10 +6,15 @@ Run with the project's Python (``bpy`` is the Blender module)::
     .venv/bin/python scripts/make_capture.py --out demo_capture
     .venv/bin/python scripts/make_capture.py --out /tmp/big --preset large
 
-Scene (Z up, metres): a brick back wall and a checker/noise floor (static texture to
-reconstruct), a spinning checker cube, a striped ball swinging across the view in front of
-it (about 10-20 px per 30 FPS frame at 160 px wide) and a noise-textured torus spinning
-and bobbing, lit by a sharp sun plus an even sky.
+Scenes, lit by a sharp sun plus an even sky: ``classic`` (presets demo, large, fast;
+``capture_classic.py``): brick wall, checker floor, a spinning cube, a swinging striped
+ball, a bobbing torus; ``novel`` (``--preset novel``, ``capture_novel.py``): the table-top
+novel-view benchmark (weakly-textured floor, textured wall, thin parts, a fast ball, a
+turntable with letters) with eval cameras 10-30 deg off the pair (``--eval-angles``).
+
+Ground truth (``capture_truth.py``): ``--depth`` writes planar depth for every rendered
+view (``depth_file_path``); every capture gets ``ground_truth.objects`` (each moving
+object's object-to-world matrix at the light rate and surface samples).
 
 Rig (CAPTURE_FORMAT.md): ``rgb0``/``rgb1`` stereo pair (30 FPS, baseline ~11 % of the
 distance to the subject), ``spike0`` co-located with ``rgb0`` (same pose and field of
@@ -19,7 +24,8 @@ transform (plain sRGB encoding, no tone curve). The spike stream is simulated fr
 linear light rendered at the spike resolution at ``--light-hz``:
 ``engine.spike.simulate.simulate_spikes`` interpolates it in time to 20 kHz, with a per-pixel
 gain map and a little dark current; linear white (1.0) fires every ``1/light_scale``
-frames. No ``points.ply`` is written, so the engine's stereo initialisation is exercised.
+frames. No ``points.ply`` is written unless ``--points``, so by default the engine's stereo
+initialisation is exercised.
 """
 from __future__ import annotations
 
@@ -35,13 +41,18 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+for _p in (REPO, REPO / "scripts"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
 
 import bpy  # noqa: E402
+import capture_classic  # noqa: E402
+import capture_novel  # noqa: E402
+import capture_truth  # noqa: E402
 
 from bt4d_addon import blender_cameras  # noqa: E402
 from engine.cameras import Intrinsics, look_at_c2w  # noqa: E402
+from engine.io.images import write_exr  # noqa: E402
 
 PRESETS = {
     # ~0.2 s, shipped with the add-on (<= 6 MB)
@@ -54,16 +65,20 @@ PRESETS = {
     # RGB frame), longer and larger than the demo: the spike-guidance benchmark scene
     "fast": dict(seconds=0.3, rgb_size=(192, 144), spike_size=(96, 72), eval_fps=300.0,
                  samples=16, light_hz=2000.0, speed=3.0),
+    # the novel-view benchmark (issue 14): table-top rig (pair 0.2 m apart ~1 m away), weakly
+    # textured floor, textured wall, thin parts, a fast ball, a turntable with letters; eval
+    # cameras 10-30 deg off the pair (to the side and above) and ground-truth depth everywhere
+    "novel": dict(seconds=0.2, rgb_size=(160, 120), spike_size=(80, 60), eval_fps=120.0,
+                  samples=16, light_hz=1000.0, scene="novel",
+                  eval_angles="side10,side20,side30,up10,up20,up30", extra_eval_fps=60.0, depth=True),
 }
+# keys that do not change the spike light (kept out of the --light-cache key)
+_NOT_LIGHT = ("eval_angles", "extra_eval_fps", "depth")
+GT_POINTS = 2000  # surface samples per moving object in ground_truth/objects.npz
+SCENES = {"classic": capture_classic, "novel": capture_novel}  # scene name -> its module
 RGB_FPS = 30.0
 SPIKE_HZ = 20000.0
 HFOV_DEG = 54.0
-TARGET = (0.0, 0.3, 0.9)
-CAMERA_EYES = {
-    "rgb0": (-0.3, -5.0, 1.4),
-    "rgb1": (0.3, -5.0, 1.4),
-    "eval0": (0.0, -4.7, 2.2),
-}
 # spike model defaults (recorded in transforms.json under spike_streams[i]["sim"])
 LIGHT_SCALE = 1.0 / 3.0   # light per spike frame for linear luminance 1.0: white fires every 3rd frame
 GAIN_STD = 0.03
@@ -72,21 +87,6 @@ PHOTONS_PER_THRESHOLD = 1000.0  # Poisson shot noise on each frame's charge
 
 
 # ----------------------------------------------------------------------------- motion
-
-Vec3 = tuple[float, float, float]
-
-
-def object_poses(t: float, speed: float = 1.0) -> dict[str, tuple[Vec3, Vec3]]:
-    """World location and XYZ Euler rotation (radians) of each moving object at time t (s);
-    ``speed`` scales every motion (the paths stay the same, traversed ``speed`` times faster)."""
-    t = t * speed
-    ball_x = 1.6 * math.sin(10.0 * t - 1.1)  # peak 16 m/s ~ 16 px per 30 FPS frame at 160 px
-    return {
-        "cube": ((-0.75, 0.5, 0.95 + 0.15 * math.sin(9.0 * t)), (0.35, 25.0 * t, 0.6 + 18.0 * t)),
-        "ball": ((ball_x, -0.6, 1.25 + 0.25 * math.cos(12.0 * t)), (0.0, 20.0 * t, 0.0)),
-        "torus": ((1.05, 0.6, 0.75 + 0.35 * math.sin(14.0 * t + 0.5)), (1.1, 0.0, 20.0 * t)),
-    }
-
 
 # ----------------------------------------------------------------------------- scene
 
@@ -118,59 +118,7 @@ def _mix(nt, a, b, fac, blend="MIX"):
     return mix.outputs[2]
 
 
-def _bricks(nt):
-    tex = nt.nodes.new("ShaderNodeTexBrick")
-    tex.inputs["Color1"].default_value = (0.55, 0.18, 0.09, 1)
-    tex.inputs["Color2"].default_value = (0.75, 0.45, 0.25, 1)
-    tex.inputs["Mortar"].default_value = (0.85, 0.85, 0.8, 1)
-    tex.inputs["Scale"].default_value = 6.0
-    noise = nt.nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 25.0
-    return _mix(nt, tex.outputs["Color"], noise.outputs["Color"], 0.15, "MULTIPLY")
-
-
-def _floor(nt):
-    tex = nt.nodes.new("ShaderNodeTexChecker")
-    tex.inputs["Color1"].default_value = (0.8, 0.8, 0.75, 1)
-    tex.inputs["Color2"].default_value = (0.12, 0.2, 0.35, 1)
-    tex.inputs["Scale"].default_value = 8.0
-    noise = nt.nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 12.0
-    noise.inputs["Detail"].default_value = 6.0
-    return _mix(nt, tex.outputs["Color"], noise.outputs["Color"], 0.35, "OVERLAY")
-
-
-def _cube(nt):
-    tex = nt.nodes.new("ShaderNodeTexChecker")
-    tex.inputs["Color1"].default_value = (0.9, 0.15, 0.1, 1)
-    tex.inputs["Color2"].default_value = (0.95, 0.85, 0.2, 1)
-    tex.inputs["Scale"].default_value = 4.0
-    return tex.outputs["Color"]
-
-
-def _ball(nt):
-    tex = nt.nodes.new("ShaderNodeTexWave")
-    tex.wave_type = "BANDS"
-    tex.inputs["Scale"].default_value = 3.0
-    tex.inputs["Distortion"].default_value = 2.0
-    ramp = nt.nodes.new("ShaderNodeValToRGB")
-    ramp.color_ramp.elements[0].color = (0.05, 0.15, 0.8, 1)
-    ramp.color_ramp.elements[1].color = (0.95, 0.95, 0.95, 1)
-    nt.links.new(tex.outputs["Fac"], ramp.inputs["Fac"])
-    return ramp.outputs["Color"]
-
-
-def _torus(nt):
-    tex = nt.nodes.new("ShaderNodeTexVoronoi")
-    tex.inputs["Scale"].default_value = 6.0
-    ramp = nt.nodes.new("ShaderNodeValToRGB")
-    ramp.color_ramp.elements[0].color = (0.05, 0.45, 0.1, 1)
-    ramp.color_ramp.elements[1].color = (0.85, 0.95, 0.5, 1)
-    nt.links.new(tex.outputs["Distance"], ramp.inputs["Fac"])
-    return ramp.outputs["Color"]
-
-
-def build_scene(samples: int, seed: int) -> tuple[bpy.types.Scene, dict]:
+def build_scene(samples: int, seed: int, scene_name: str = "classic") -> tuple[bpy.types.Scene, dict]:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
@@ -217,50 +165,64 @@ def build_scene(samples: int, seed: int) -> tuple[bpy.types.Scene, dict]:
     sun.rotation_euler = (math.radians(40), math.radians(-20), math.radians(-25))
     scene.collection.objects.link(sun)
 
-    objs = {}
-    bpy.ops.mesh.primitive_plane_add(size=1.0)
-    wall = bpy.context.object
-    wall.name = "wall"
-    wall.scale = (10.0, 5.0, 1.0)
-    wall.rotation_euler = (math.radians(90), 0, 0)
-    wall.location = (0.0, 2.5, 2.5)
-    wall.data.materials.append(_material("bricks", _bricks))
-    bpy.ops.mesh.primitive_plane_add(size=10.0)
-    floor = bpy.context.object
-    floor.name = "floor"
-    floor.data.materials.append(_material("floor", _floor))
-
-    bpy.ops.mesh.primitive_cube_add(size=0.7)
-    objs["cube"] = bpy.context.object
-    objs["cube"].data.materials.append(_material("cube", _cube))
-    bpy.ops.mesh.primitive_uv_sphere_add(radius=0.33, segments=32, ring_count=16)
-    objs["ball"] = bpy.context.object
-    bpy.ops.object.shade_smooth()
-    objs["ball"].data.materials.append(_material("ball", _ball))
-    bpy.ops.mesh.primitive_torus_add(major_radius=0.32, minor_radius=0.11)
-    objs["torus"] = bpy.context.object
-    bpy.ops.object.shade_smooth()
-    objs["torus"].data.materials.append(_material("torus", _torus))
-    for name, obj in objs.items():
-        obj.name = name
-        obj.rotation_mode = "XYZ"
-    return scene, objs
+    return scene, SCENES[scene_name].build_objects(scene, _material, _mix)
 
 
-def set_time(objs: dict, t: float, speed: float = 1.0) -> None:
-    for name, (loc, rot) in object_poses(t, speed).items():
+def object_poses(t: float, speed: float = 1.0, scene_name: str = "classic"):
+    return SCENES[scene_name].object_poses(t, speed)
+
+
+def set_time(objs: dict, t: float, speed: float = 1.0, scene_name: str = "classic") -> None:
+    for name, (loc, rot) in object_poses(t, speed, scene_name).items():
         objs[name].location = loc
         objs[name].rotation_euler = rot
 
 
-def rig(rgb_size, spike_size, scene) -> dict:
-    """name -> dict(intr, c2w, role, blender object)."""
+def orbit_eye(eye, target, side_deg: float = 0.0, up_deg: float = 0.0) -> tuple:
+    """``eye`` moved on the sphere around ``target``: ``side_deg`` of azimuth about the vertical
+    through the target (positive: to the pair's left, -X, for a pair looking along +Y) and
+    ``up_deg`` of elevation; same distance. At the novel rig's ~13 deg downward view, 20 deg
+    of azimuth is 19.5 deg of arc from the pair; elevation is exact."""
+    v = np.asarray(eye, np.float64) - np.asarray(target, np.float64)
+    r = np.linalg.norm(v)
+    az = math.atan2(v[1], v[0]) - math.radians(side_deg)
+    el = math.asin(v[2] / r) + math.radians(up_deg)
+    return tuple(np.asarray(target) + r * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az),
+                                                     math.sin(el)]))
+
+
+def eval_angles(spec: str | None) -> dict[str, tuple[float, float]]:
+    """'side10,up20,...' -> {'eval_side10': (10, 0), 'eval_up20': (0, 20), ...} (degrees)."""
+    out = {}
+    for item in filter(None, (spec or "").replace(" ", "").split(",")):
+        for kind in ("side", "up"):
+            if item.startswith(kind):
+                try:
+                    deg = float(item[len(kind):])
+                except ValueError:
+                    break
+                out[f"eval_{item}"] = (deg, 0.0) if kind == "side" else (0.0, deg)
+                break
+        else:
+            raise ValueError(f"--eval-angles: {item!r} is not side<deg> or up<deg>")
+    return out
+
+
+def rig(rgb_size, spike_size, scene, scene_name: str = "classic", angles: dict | None = None) -> dict:
+    """name -> dict(intr, c2w, role, blender object). ``angles``: extra eval camera name ->
+    (side, up) degrees off the stereo pair's midpoint, around the target."""
     w, h = rgb_size
     f = (w / 2.0) / math.tan(math.radians(HFOV_DEG) / 2.0)
     rgb_intr = Intrinsics(w, h, f, f, w / 2.0, h / 2.0)
+    target, eyes = SCENES[scene_name].TARGET, dict(SCENES[scene_name].CAMERA_EYES)
+    mid = 0.5 * (np.asarray(eyes["rgb0"]) + np.asarray(eyes["rgb1"]))
+    if scene_name == "novel":  # held out, 15 deg to the right (+X) and 10 deg above the pair
+        eyes["eval0"] = orbit_eye(mid, target, -15.0, 10.0)
+    for name, (side, up) in (angles or {}).items():
+        eyes[name] = orbit_eye(mid, target, side, up)
     cams = {}
-    for name in ("rgb0", "rgb1", "eval0"):
-        cams[name] = dict(intr=rgb_intr, c2w=look_at_c2w(CAMERA_EYES[name], TARGET),
+    for name in eyes:
+        cams[name] = dict(intr=rgb_intr, c2w=look_at_c2w(eyes[name], target),
                           role="eval" if name.startswith("eval") else "train")
     cams["spike0"] = dict(intr=rgb_intr.scaled(*spike_size), c2w=cams["rgb0"]["c2w"].copy(), role="train")
     for name, cam in cams.items():
@@ -323,14 +285,15 @@ def frame_times(seconds: float, fps: float) -> np.ndarray:
     return np.arange(n) / fps
 
 
-def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -> np.ndarray:
+def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0,
+                 scene_name: str = "classic") -> np.ndarray:
     """Linear Rec.709 luminance at the spike camera for each time: (T, H, W) float32."""
     from engine.colour import luminance
     from engine.io.images import read_image
 
     out = np.empty((len(times), cam["intr"].height, cam["intr"].width), np.float32)
     for i, t in enumerate(times):
-        set_time(objs, float(t), speed)
+        set_time(objs, float(t), speed, scene_name)
         p = work / f"light_{i:06d}.exr"
         render_to(scene, cam, p, "EXR")
         out[i] = luminance(read_image(p)[..., :3])
@@ -343,11 +306,31 @@ def render_light(scene, objs, cam, times, work: Path, log, speed: float = 1.0) -
 def write_pointmap(scene, objs, cams, out: Path, cfg: dict) -> Path:
     from engine.io.points import write_points
 
-    set_time(objs, 0.0, cfg["speed"])
+    set_time(objs, 0.0, cfg["speed"], cfg.get("scene", "classic"))
     xyz, rgb = stereo_pointmap(scene, cams, out)
     path = write_points(out / "points.ply", xyz, rgb)
     print(f"points: {len(xyz)} from the rgb0/rgb1 pointmap at t=0 -> {path}", flush=True)
     return path
+
+
+def write_object_truth(scene, objs, times, out: Path, cfg: dict, seed: int) -> dict:
+    """ground_truth/objects.npz (times, per object [T,4,4] object-to-world and [P,3] surface
+    samples in object space) and its transforms.json block."""
+    from engine.io.fileio import atomic_path
+
+    mats = capture_truth.object_matrices(
+        objs, times, lambda t: set_time(objs, t, cfg["speed"], cfg.get("scene", "classic")))
+    arrays = {"times": np.asarray(times, np.float64)}
+    for k, (name, obj) in enumerate(sorted(objs.items())):
+        arrays[name] = mats[name]
+        arrays[f"{name}_points"] = capture_truth.surface_samples(obj, GT_POINTS, seed + 10 + k)
+    path = out / "ground_truth" / "objects.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path, ".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+    return {"objects": {"file_path": "ground_truth/objects.npz", "rate_hz": float(cfg["light_hz"]),
+                        "t0": float(times[0]), "names": sorted(objs)}}
 
 
 def main(argv=None) -> int:
@@ -362,6 +345,12 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, help="Cycles samples per pixel")
     ap.add_argument("--speed", type=float, help="motion speed multiplier (1: the demo's motion)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--eval-angles", help="extra eval cameras off the stereo pair, e.g. side10,side20,up20 "
+                                          "(degrees of azimuth to the pair's left / of elevation, around the target)")
+    ap.add_argument("--extra-eval-fps", type=float, help="frame rate of the extra eval cameras (default 60: "
+                                                         "every RGB instant and the midpoint between two)")
+    ap.add_argument("--depth", action=argparse.BooleanOptionalAction, default=None,
+                    help="write ground-truth planar depth (EXR, depth_file_path) for every rendered view")
     ap.add_argument("--light-cache", type=Path, help="npz to reuse / store the rendered spike light")
     ap.add_argument("--points", action="store_true",
                     help="also write points.ply: the stereo pair's exact pointmap at t=0 (a perfect DUSt3R stand-in)")
@@ -371,7 +360,9 @@ def main(argv=None) -> int:
 
     cfg = dict(PRESETS[args.preset])
     cfg.setdefault("speed", 1.0)
-    for key in ("seconds", "eval_fps", "light_hz", "samples", "speed"):
+    cfg.setdefault("extra_eval_fps", 60.0)
+    cfg.setdefault("depth", False)
+    for key in ("seconds", "eval_fps", "light_hz", "samples", "speed", "eval_angles", "extra_eval_fps", "depth"):
         if getattr(args, key) is not None:
             cfg[key] = getattr(args, key)
     for key in ("rgb_size", "spike_size"):
@@ -385,17 +376,22 @@ def main(argv=None) -> int:
     if (cfg["spike_size"][0] * cfg["spike_size"][1]) % 8:
         ap.error("--spike-size: width * height must be a multiple of 8 (Vidar frames are whole bytes)")
 
+    try:
+        angles = eval_angles(cfg.get("eval_angles"))
+    except ValueError as exc:
+        ap.error(str(exc))
+    scene_name = cfg.get("scene", "classic")
     out: Path = args.out.resolve()
     if args.points_only:
         if not (out / "rgb/rgb0/000000.png").exists():
             ap.error(f"--points-only: {out} has no rgb/rgb0/000000.png; generate the capture first")
-        scene, objs = build_scene(cfg["samples"], args.seed)
-        cams = rig(cfg["rgb_size"], cfg["spike_size"], scene)
+        scene, objs = build_scene(cfg["samples"], args.seed, scene_name)
+        cams = rig(cfg["rgb_size"], cfg["spike_size"], scene, scene_name)
         write_pointmap(scene, objs, cams, out, cfg)
         return 0
     if out.exists() and any(out.iterdir()) and not (out / "transforms.json").exists():
         ap.error(f"{out} exists, is not empty and is not a capture; refusing to overwrite")
-    for sub in ("rgb", "eval", "spike"):
+    for sub in ("rgb", "eval", "spike", "depth", "ground_truth"):
         shutil.rmtree(out / sub, ignore_errors=True)
     (out / "transforms.json").unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
@@ -405,37 +401,50 @@ def main(argv=None) -> int:
     def log(msg):
         print(f"[{time.perf_counter() - t_start:7.1f}s] {msg}", flush=True)
 
-    scene, objs = build_scene(cfg["samples"], args.seed)
-    cams = rig(cfg["rgb_size"], cfg["spike_size"], scene)
+    scene, objs = build_scene(cfg["samples"], args.seed, scene_name)
+    cams = rig(cfg["rgb_size"], cfg["spike_size"], scene, scene_name, angles)
     log(f"scene built: {cfg}")
 
-    def record(cam_name, rel, t):
-        return {"file_path": rel, "camera": cam_name, "time": round(float(t), 9),
-                "transform_matrix": cams[cam_name]["c2w"].tolist()}
+    def record(cam_name, rel, t, i):
+        rec = {"file_path": rel, "camera": cam_name, "time": round(float(t), 9),
+               "transform_matrix": cams[cam_name]["c2w"].tolist()}
+        if cfg["depth"]:
+            drel = f"depth/{cam_name}/{i:06d}.exr"
+            (out / drel).parent.mkdir(parents=True, exist_ok=True)
+            write_exr(out / drel, {"Z": capture_truth.planar_depth(scene, cams[cam_name]["intr"],
+                                                                   cams[cam_name]["c2w"])})
+            rec["depth_file_path"] = drel
+        return rec
+
+    def pose(t):
+        set_time(objs, float(t), cfg["speed"], scene_name)
 
     frames, eval_frames = [], []
     rgb_times = frame_times(cfg["seconds"], RGB_FPS)
     for i, t in enumerate(rgb_times):
-        set_time(objs, float(t), cfg["speed"])
+        pose(t)
         for name in ("rgb0", "rgb1"):
             rel = f"rgb/{name}/{i:06d}.png"
             render_to(scene, cams[name], out / rel, "PNG")
-            frames.append(record(name, rel, t))
+            frames.append(record(name, rel, t, i))
     log(f"rgb: {len(rgb_times)} frames x 2 cameras")
-    eval_times = frame_times(cfg["seconds"], cfg["eval_fps"])
-    for i, t in enumerate(eval_times):
-        set_time(objs, float(t), cfg["speed"])
-        rel = f"eval/eval0/{i:06d}.png"
-        render_to(scene, cams["eval0"], out / rel, "PNG")
-        eval_frames.append(record("eval0", rel, t))
-    log(f"eval: {len(eval_times)} frames at {cfg['eval_fps']} FPS")
+    eval_sets = [("eval0", frame_times(cfg["seconds"], cfg["eval_fps"]))]
+    eval_sets += [(name, frame_times(cfg["seconds"], cfg["extra_eval_fps"])) for name in angles]
+    for name, times in eval_sets:
+        for i, t in enumerate(times):
+            pose(t)
+            rel = f"eval/{name}/{i:06d}.png"
+            render_to(scene, cams[name], out / rel, "PNG")
+            eval_frames.append(record(name, rel, t, i))
+        log(f"eval {name}: {len(times)} frames")
 
     n_spike = int(round(cfg["seconds"] * SPIKE_HZ))
     light_times = frame_times(cfg["seconds"], cfg["light_hz"])
     if light_times[-1] < (n_spike - 1) / SPIKE_HZ:
         light_times = np.append(light_times, light_times[-1] + 1.0 / cfg["light_hz"])
     spike_cam = cams["spike0"]
-    key = dict(cfg, seed=args.seed, n=len(light_times))
+    key = {k: v for k, v in cfg.items() if k not in _NOT_LIGHT}
+    key = dict(key, seed=args.seed, n=len(light_times))
     key = json.dumps({k: list(v) if isinstance(v, tuple) else v for k, v in key.items()}, sort_keys=True)
     light = None
     if args.light_cache and args.light_cache.exists():
@@ -445,7 +454,7 @@ def main(argv=None) -> int:
                 log(f"light: reused {args.light_cache}")
     if light is None:
         with tempfile.TemporaryDirectory(prefix="bt4d_light_") as work:
-            light = render_light(scene, objs, spike_cam, light_times, Path(work), log, cfg["speed"])
+            light = render_light(scene, objs, spike_cam, light_times, Path(work), log, cfg["speed"], scene_name)
         if args.light_cache:
             np.savez_compressed(args.light_cache, light=light, key=np.array(key))
         log(f"light: {len(light_times)} frames at {cfg['light_hz']} Hz, "
@@ -471,8 +480,10 @@ def main(argv=None) -> int:
     transforms = {
         "version": 1,
         "generator": {"script": "scripts/make_capture.py", "preset": args.preset, "seed": args.seed,
-                      "samples": cfg["samples"], "light_hz": cfg["light_hz"], "speed": cfg["speed"]},
-        "cameras": {name: cam_record(name) for name in ("rgb0", "rgb1", "spike0", "eval0")},
+                      "samples": cfg["samples"], "light_hz": cfg["light_hz"], "speed": cfg["speed"],
+                      "scene": scene_name, "eval_angles": {n: {"side_deg": a[0], "up_deg": a[1]}
+                                                           for n, a in angles.items()}},
+        "cameras": {name: cam_record(name) for name in cams},
         "frames": frames,
         "eval_frames": eval_frames,
         "spike_streams": [{
@@ -484,6 +495,8 @@ def main(argv=None) -> int:
                     "shot_noise": True, "photons_per_threshold": PHOTONS_PER_THRESHOLD},
         }],
     }
+    transforms["ground_truth"] = write_object_truth(scene, objs, light_times, out, cfg, args.seed)
+    log(f"ground truth: {len(light_times)} object poses at {cfg['light_hz']} Hz for {sorted(objs)}")
     if args.points:
         write_pointmap(scene, objs, cams, out, cfg)
     (out / "transforms.json").write_text(json.dumps(transforms, indent=1))

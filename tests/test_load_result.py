@@ -53,7 +53,7 @@ def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     times = np.array(mesh["bt4d_times"])
     np.testing.assert_allclose(times, np.linspace(*model.time_range, 4), atol=1e-6)
     attrs = roundtrip_util.addon_module("bt4d_addon.attributes")
-    for name in (attrs.ROT.name, attrs.SCALE.name, attrs.OPACITY.name, attrs.COLOR.name):
+    for name in (attrs.ROT.name, attrs.SCALE.name, attrs.OPACITY.name, attrs.COLOUR.name):
         assert name in mesh.attributes
     # sample 2 holds the model at times[2]
     g = model.gaussians_at(float(times[2]))
@@ -61,7 +61,7 @@ def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     mesh.vertices.foreach_get("co", co)
     np.testing.assert_allclose(co.reshape(K, N, 3)[2], g["means"], atol=1e-5)
     col = np.empty(N * K * 4, np.float32)
-    mesh.attributes[attrs.COLOR.name].data.foreach_get("color", col)
+    mesh.attributes[attrs.COLOUR.name].data.foreach_get("color", col)
     np.testing.assert_allclose(col.reshape(K, N, 4)[2, :, :3], srgb_to_linear(g["colors"]), atol=1e-5)
     # the modifier shows sample 2 when Capture Time is times[2]
     gn.key_capture_time(obj, [(1, float(times[2])), (2, float(times[2]))])

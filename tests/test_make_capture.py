@@ -96,3 +96,28 @@ def test_demo_capture_is_small_and_moving(demo_capture):
     assert mid
     err = np.abs(mid[0].load_rgb() - 0.5 * (a + b)).mean()
     assert err > 0.01
+
+
+@pytest.mark.slow
+def test_object_ground_truth_follows_the_motion(tiny_capture):
+    """Every generated capture carries ground_truth.objects: poses at the light rate."""
+    sys.path.insert(0, str(REPO_ROOT / "scripts"))
+    import capture_classic
+
+    cap = load_capture(tiny_capture)
+    obj = cap.ground_truth.objects
+    assert obj.names == ["ball", "cube", "torus"] and obj.rate_hz == 500.0
+    truth = obj.load()
+    assert truth["times"] == pytest.approx(np.arange(len(truth["times"])) / 500.0)
+    for i in (0, 7, len(truth["times"]) - 1):
+        for name, (loc, _) in capture_classic.object_poses(truth["times"][i]).items():
+            np.testing.assert_allclose(truth[name][i][:3, 3], loc, atol=1e-6)
+    assert all(f.depth_file_path is None for f in cap.frames)  # depth is opt-in outside --preset novel
+
+
+def test_bad_eval_angles_are_refused(tmp_path):
+    cmd = [sys.executable, str(REPO_ROOT / "scripts" / "make_capture.py"), "--out", str(tmp_path / "x"),
+           "--eval-angles", "side10,left20"]
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=120)
+    assert proc.returncode == 2 and "'left20' is not side<deg> or up<deg>" in proc.stdout
+    assert not (tmp_path / "x").exists()

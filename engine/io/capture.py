@@ -21,6 +21,12 @@ Spike streams (ours only): ``w``/``h`` default to the camera's and must match it
 the stream's camera, else of ``co_located_with``; optional ``head_cols`` / ``flipud`` are
 passed to :func:`engine.io.spikes.read_spikes`.
 
+Ground truth (ours only, optional; written by scripts/make_capture.py): a frame's
+``depth_file_path`` names a single-channel float32 EXR (channel ``Z``) of planar depth in
+metres, ``inf`` (or > 1e9) where no surface is (:meth:`Frame.load_depth`); a top-level
+``ground_truth.objects`` block names an npz of moving objects' object-to-world matrices at
+``rate_hz`` and surface samples (:class:`ObjectTruth`, :meth:`ObjectTruth.load`).
+
 Everything the loader can check without decoding images is checked at load time and
 reported as :class:`engine.errors.CaptureError` naming the file (and the frame / key) and
 the problem. Image sizes are checked when a frame's pixels are loaded
@@ -37,6 +43,7 @@ from ..cameras import Intrinsics, View
 from ..colour import linear_to_srgb
 from ..errors import CaptureError
 from . import images
+from .ground_truth import GroundTruth, load_depth, parse_depth_path, parse_ground_truth
 from .points import load_points
 from .records import CheckContext, check_intrinsics, read_json, resolve_image
 from .spikes import SpikeStream, count_frames, frame_bytes
@@ -75,6 +82,14 @@ class Frame:
     intrinsics: Intrinsics | None = None
     role: str = "train"
     extra: dict = field(default_factory=dict)
+    depth_file_path: Path | None = None  # ground-truth planar depth EXR (absolute), if the capture has it
+
+    def load_depth(self) -> np.ndarray:
+        """float32 [H, W] ground-truth planar depth (metres along the viewing axis); ``inf``
+        where no surface is (values > 1e9 and non-finite ones are read as ``inf``)."""
+        if self.depth_file_path is None:
+            raise CaptureError(self.path, "frame has no ground-truth depth (no depth_file_path)")
+        return load_depth(self.depth_file_path, self.intrinsics)
 
     def load_rgba(self) -> np.ndarray:
         """float32 [H, W, 4]: RGB sRGB-encoded in [0, 1] (EXR encoded and clipped), alpha."""
@@ -161,6 +176,7 @@ class Capture:
     format: str = "bt4d"
     transforms_path: Path | None = None
     val_frames: list[Frame] = field(default_factory=list)
+    ground_truth: "GroundTruth | None" = None
 
     def __repr__(self) -> str:
         return (f"Capture({str(self.root)!r}, format={self.format}, cameras={list(self.cameras)}, "
@@ -258,7 +274,8 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
         t = ctx.num(ctx.get(d, "time", where), f"{where}.time")
         c2w = ctx.matrix(ctx.get(d, "transform_matrix", where), f"{where}.transform_matrix")
         role = "eval" if default_role == "eval" else cameras[cam].role
-        return Frame(path, cam, t, c2w, cameras[cam].intrinsics, role)
+        depth = parse_depth_path(ctx, root, d, where)
+        return Frame(path, cam, t, c2w, cameras[cam].intrinsics, role, depth_file_path=depth)
 
     all_frames = [frame(d, f"frames[{i}]", "train") for i, d in enumerate(ctx.list_of(data, "frames", required=True))]
     frames = [f for f in all_frames if f.role == "train"]
@@ -313,8 +330,11 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
         streams.append(SpikeStreamInfo(spath.resolve(), cam, rate, t0, int(n), int(w), int(h), co,
                                        None if c2w is None else np.array(c2w), k, int(head_cols), flipud))
 
-    return Capture(root, cameras, frames, eval_frames, streams, _find_points(root, data, ctx),
-                   _time_range(frames + eval_frames, streams), "bt4d", tpath)
+    cap = Capture(root, cameras, frames, eval_frames, streams, _find_points(root, data, ctx),
+                  _time_range(frames + eval_frames, streams), "bt4d", tpath)
+    if "ground_truth" in data:
+        cap.ground_truth = parse_ground_truth(ctx, root, data["ground_truth"])
+    return cap
 
 
 def _load_nerfstudio(root: Path, tpath: Path, data: dict) -> Capture:
