@@ -11,6 +11,7 @@ from engine.train.interpolation import (
     interpolate,
     linear_blend,
     lk_flow,
+    resample_area,
     warp,
 )
 
@@ -100,5 +101,33 @@ def test_block_colour_loss_ignores_detail_inside_blocks():
     # a half-resolution render against a full-resolution target: same blocks (k=2 vs k_target=4)
     half = torch.nn.functional.avg_pool2d(flat.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
     assert float(block_colour_loss(half, target, 2, k_target=4)) < 1e-6
-    with pytest.raises(ValueError):
-        block_colour_loss(half, target, 4, k_target=4)
+    # different block grids (k=4 on the half render vs k_target=4): the target is area-resampled
+    # onto the render's grid, then pooled with the render's blocks
+    coarse = avg_pool_blocks(resample_area(target, (8, 8)), 4)
+    assert torch.allclose(block_colour_loss(half, target, 4, k_target=4),
+                          (avg_pool_blocks(half, 4) - coarse).abs().mean())
+
+
+@pytest.mark.parametrize("size", [(161, 121), (163, 119), (97, 73), (160, 120), (33, 17), (5, 9)])
+@pytest.mark.parametrize("scale", [0.5, 0.25, 0.3])
+def test_block_colour_loss_any_size_at_between_scale(size, scale):
+    """The trainer's between-frame path (issue 11): a render at ``between_scale`` x an RGB
+    frame of any size (161x121 used to raise "block grids differ") against the pooled
+    frame; a render of the frame's own (area-downscaled) content costs ~nothing and a
+    brighter one costs the brightness step."""
+    from engine.train.spike_guidance import scaled_view
+
+    W, H = size
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
+    frame = torch.stack([xx, yy, 0.5 * (xx + yy)], -1)[None]  # smooth: resampling is exact-ish
+    item = {"width": W, "height": H, "K": torch.eye(3)[None], "image": frame}
+    vt = scaled_view(item, scale)
+    render = resample_area(frame, (vt["height"], vt["width"]))
+    k = 4
+    kp = max(1, int(round(k * scale)))
+    target = avg_pool_blocks(frame, k)  # what SpikeGuidance.pooled_target caches (k_target=1)
+    same = block_colour_loss(render, target, kp, k_target=1)
+    off = block_colour_loss(render + 0.2, target, kp, k_target=1)
+    assert torch.isfinite(same) and torch.isfinite(off)
+    if min(W, H) >= 64:  # tiny images: a block is a large part of the gradient, the grids blur it
+        assert float(same) < 0.03 and abs(float(off) - 0.2) < 0.03

@@ -279,3 +279,42 @@ def test_block_targets_are_pooled_cached_and_close_to_the_exact_instant(cap, mon
     g.pooled_target("rgb1", 0.01, 4)
     g.pooled_target("rgb1", 0.012, 4)
     assert len(g._targets) <= 2  # bounded: least recently used out
+
+
+@needs_trainer_integration
+def test_run_renders_its_fine_branch_without_the_capture(demo_capture, tmp_path):
+    """Issue 11: the fine branch was rebuilt from the capture path recorded in the run and
+    returned zeros when that path was gone. The checkpoint now stores the spike windows:
+    the same pixels with the capture deleted; a checkpoint without them (older runs) fails
+    with a RunError naming the missing path."""
+    import shutil
+
+    import torch as _t
+
+    from engine.errors import RunError
+    from engine.scene.model import load_run
+    from engine.train import train
+
+    copy = tmp_path / "capture"
+    shutil.copytree(demo_capture, copy)
+    cap_copy = load_capture(copy)
+    view = cap_copy.view(cap_copy.eval_frames[4])
+    t = float(cap_copy.eval_frames[4].time)
+    summary = train(cap_copy, tmp_path / "run", preset="fast", overrides=_TINY, resume=False)
+    assert summary["status"] == "finished"
+    before = load_run(tmp_path / "run").render([view])[0]["rgb"]
+    shutil.rmtree(copy)
+    scene = load_run(tmp_path / "run")
+    after = scene.render([view])[0]["rgb"]
+    assert np.array_equal(before, after)
+    field = scene.model.deformation
+    xyz = field.normalize_xyz(scene.model.gaussians.means.detach())
+    f = field.fine_encoder(xyz, t)
+    assert float(f.detach().abs().sum()) > 0  # the branch is live, not the zero fallback
+    # an older checkpoint (no stored windows) with its capture gone: a clear error
+    ck = tmp_path / "run" / "checkpoint.pt"
+    state = _t.load(ck, weights_only=False)
+    state["model"]["deformation"].pop("fine_windows")
+    _t.save(state, ck)
+    with pytest.raises(RunError, match="capture"):
+        load_run(tmp_path / "run").render([view])

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..spike.features import SpikeWindowCache
 from .fine_deformation import SpikeFineEncoder
 
 # (a, b) coordinate indices of the six planes; 3 is time.
@@ -150,6 +151,7 @@ class DeformationField(nn.Module):
         self.fine_encoder: nn.Module | None = None  # Eq. 10 hook (spike branch)
         self.fine_spec: dict | None = None  # spec of a checkpoint's spike fine encoder
         self.pending_fine_state: dict = {}  # fine_encoder weights found in a checkpoint (see engine.scene.model)
+        self.pending_fine_windows: dict | None = None  # its stored spike windows (SpikeWindowCache.state)
 
     # ---- coordinates ------------------------------------------------------------------
     def normalize_xyz(self, xyz: torch.Tensor) -> torch.Tensor:
@@ -234,6 +236,9 @@ class DeformationField(nn.Module):
         if self.fine_encoder is not None or self.fine_spec is None:
             return
         enc = SpikeFineEncoder(self.feature_dim, self.fine_spec).to(self.bounds_min.device)
+        if self.pending_fine_windows is not None:  # stored spike windows: no capture needed
+            enc.attach(SpikeWindowCache.from_state(self.pending_fine_windows, device=self.bounds_min.device))
+            self.pending_fine_windows = None
         if self.pending_fine_state:
             enc.load_state_dict(self.pending_fine_state)
             self.pending_fine_state = {}

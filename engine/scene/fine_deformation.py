@@ -31,6 +31,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..errors import RunError
 from ..io.capture import load_capture
 from ..spike.features import SpikeWindowCache
 
@@ -190,16 +191,30 @@ class SpikeFineEncoder(nn.Module):
     def attach(self, cache: SpikeWindowCache | None) -> None:
         self._cache, self._tried = cache, True
 
-    def source(self) -> SpikeWindowCache | None:
-        if self._cache is None and not self._tried:
+    def source(self) -> SpikeWindowCache:
+        """The spike windows: attached (training), stored in the checkpoint (runs saved
+        since issue 11), else re-read from the capture recorded in the spec -- a RunError
+        naming that path when it is gone (the branch never silently returns zeros: metrics
+        would come from another model than the one trained)."""
+        if self._cache is None:
             self._tried = True
+            path = self.spec["capture"]
             try:
-                cap = load_capture(self.spec["capture"])
+                cap = load_capture(path)
                 stream = cap.spike_stream(self.spec["stream_camera"])
-                self._cache = SpikeWindowCache(stream, self.spec["rgb_times"], k_sub=int(self.spec["k_sub"]))
-            except Exception:  # capture moved or gone: the fine branch falls back to zero
-                self._cache = None
+            except Exception as exc:
+                raise RunError(path, "the run's spike fine branch needs this capture's spike stream "
+                                     f"({self.spec['stream_camera']}) and the checkpoint does not store its "
+                                     f"windows (an older run): restore the capture there, or retrain ({exc})") from exc
+            self._cache = SpikeWindowCache(stream, self.spec["rgb_times"], k_sub=int(self.spec["k_sub"]))
         return self._cache
+
+    def windows_state(self) -> dict | None:
+        """The spike windows for the checkpoint (None when none could be read)."""
+        try:
+            return self.source().state()
+        except Exception:
+            return None
 
     def covers(self, t: float) -> bool:
         lo, hi = self.spec["coverage"]
@@ -209,9 +224,9 @@ class SpikeFineEncoder(nn.Module):
     def forward(self, xyz_norm: torch.Tensor, t: float) -> torch.Tensor:
         n = xyz_norm.shape[0]
         zeros = xyz_norm.new_zeros(n, self.feature_dim)
-        cache = self.source()
-        if cache is None or not self.covers(float(t)):
+        if not self.covers(float(t)):
             return zeros
+        cache = self.source()
         win = cache.window(float(t))
         gated = bool(self.spec.get("change_gate", False))
         grid = vis = None

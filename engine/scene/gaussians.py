@@ -120,6 +120,7 @@ class GaussianModel(nn.Module):
         self.sh_rest = nn.Parameter(torch.zeros(n, k - 1, 3, device=device))
         self.optimizer: torch.optim.Adam | None = None
         self.extent = 1.0
+        self.extra_lrs: dict[str, float] = {}  # per-Gaussian extra parameters (add_extra)
         self._reset_stats()
 
     # ------------------------------------------------------------------ attributes
@@ -151,8 +152,34 @@ class GaussianModel(nn.Module):
             rgb = eval_sh(deg, sh[:, : num_sh_bases(deg)], means - campos)
         return (rgb + 0.5).clamp_min(0.0)
 
+    @property
+    def param_names(self) -> tuple:
+        """The per-Gaussian parameters: 3DGS's plus the extras (e.g. trajectories)."""
+        return PARAM_NAMES + tuple(getattr(self, "extra_lrs", {}))
+
     def params(self) -> dict[str, nn.Parameter]:
-        return {name: getattr(self, name) for name in PARAM_NAMES}
+        return {name: getattr(self, name) for name in self.param_names}
+
+    def add_extra(self, name: str, value: torch.Tensor, lr: float, *, position_like: bool = False) -> None:
+        """A per-Gaussian parameter [N, ...] (e.g. trajectory control points, issue 11) that
+        densification clones / splits / prunes with the rows, saved with the model and
+        optimised in its own Adam group (``lr`` x extent and decayed like the means when
+        ``position_like``)."""
+        if name in PARAM_NAMES or not name.isidentifier():
+            raise ValueError(f"bad extra parameter name {name!r}")
+        if value.shape[0] != self.num_gaussians:
+            raise ValueError(f"extra parameter {name!r} has {value.shape[0]} rows for {self.num_gaussians} Gaussians")
+        setattr(self, name, nn.Parameter(value.detach().to(self.means.device).float().contiguous()))
+        self.extra_lrs[name] = float(lr)
+        self.extra_position_like = set(getattr(self, "extra_position_like", set()))
+        if position_like:
+            self.extra_position_like.add(name)
+        if self.optimizer is not None:
+            self.optimizer.add_param_group({"params": [getattr(self, name)], "lr": self._extra_lr(name), "name": name})
+
+    def _extra_lr(self, name: str, scale: float = 1.0) -> float:
+        lr = self.extra_lrs[name]
+        return lr * self.extent * scale if name in getattr(self, "extra_position_like", set()) else lr
 
     # ------------------------------------------------------------------ optimiser
     def setup_optimizer(self, cfg, extent: float) -> None:
@@ -160,6 +187,7 @@ class GaussianModel(nn.Module):
         lrs = {"means": cfg.lr_means * self.extent, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
                "opacity_logits": cfg.lr_opacities, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
         groups = [{"params": [getattr(self, n)], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
+        groups += [{"params": [getattr(self, n)], "lr": self._extra_lr(n), "name": n} for n in self.extra_lrs]
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
         self._lr_means = (cfg.lr_means * self.extent, cfg.lr_means_final * self.extent)
 
@@ -171,6 +199,8 @@ class GaussianModel(nn.Module):
         for g in self.optimizer.param_groups:
             if g["name"] == "means":
                 g["lr"] = lr
+            elif g["name"] in getattr(self, "extra_position_like", set()):
+                g["lr"] = self._extra_lr(g["name"], lr / lr0)
         return lr
 
     def oneup_sh_degree(self) -> None:
@@ -208,7 +238,7 @@ class GaussianModel(nn.Module):
         ``n_new`` rows appended at the end start with zero Adam moments.
         """
         opt = self.optimizer
-        for name in PARAM_NAMES:
+        for name in self.param_names:
             old = getattr(self, name)
             new = nn.Parameter(new_tensors[name].contiguous())
             if opt is not None:
@@ -241,10 +271,11 @@ class GaussianModel(nn.Module):
                 cand &= grads >= grad_threshold
             clone = cand & ~big
             split = cand & big
-            p = {n: getattr(self, n).detach() for n in PARAM_NAMES}
+            names = self.param_names
+            p = {n: getattr(self, n).detach() for n in names}
 
             # clone: same parameters (3DGS)
-            add = {n: p[n][clone] for n in PARAM_NAMES}
+            add = {n: p[n][clone] for n in names}
             # split: two samples from each big Gaussian, scale / 1.6, replace the original
             ns = int(split.sum())
             if ns:
@@ -261,7 +292,9 @@ class GaussianModel(nn.Module):
                     "sh_dc": p["sh_dc"][split].repeat(2, 1, 1),
                     "sh_rest": p["sh_rest"][split].repeat(2, 1, 1),
                 }
-                add = {n: torch.cat([add[n], split_add[n]]) for n in PARAM_NAMES}
+                for n in self.extra_lrs:  # trajectories etc.: both halves follow the parent's
+                    split_add[n] = p[n][split].repeat(2, *([1] * (p[n].dim() - 1)))
+                add = {n: torch.cat([add[n], split_add[n]]) for n in names}
             n_add = add["means"].shape[0]
 
             # prune: low opacity, huge in world space, split originals, non-finite
@@ -272,7 +305,7 @@ class GaussianModel(nn.Module):
             keep = ~prune
             if int(keep.sum()) + n_add == 0:  # never prune everything
                 keep = torch.ones_like(keep)
-            new = {n: torch.cat([p[n][keep], add[n]]) for n in PARAM_NAMES}
+            new = {n: torch.cat([p[n][keep], add[n]]) for n in names}
             self._replace(new, keep, n_add)
             self._reset_stats()
             return {"cloned": int(clone.sum()), "split": ns, "pruned": int(prune.sum()) - ns,
@@ -281,7 +314,7 @@ class GaussianModel(nn.Module):
     def prune(self, mask: torch.Tensor) -> None:
         """Remove rows where ``mask`` is True."""
         keep = ~mask
-        new = {n: getattr(self, n).detach()[keep] for n in PARAM_NAMES}
+        new = {n: getattr(self, n).detach()[keep] for n in self.param_names}
         self._replace(new, keep, 0)
         self._reset_stats()
 
@@ -300,7 +333,9 @@ class GaussianModel(nn.Module):
     def state(self) -> dict:
         """Everything needed to rebuild the model and its optimiser exactly."""
         return {
-            "params": {n: getattr(self, n).detach().cpu() for n in PARAM_NAMES},
+            "params": {n: getattr(self, n).detach().cpu() for n in self.param_names},
+            "extra_lrs": dict(self.extra_lrs),
+            "extra_position_like": sorted(getattr(self, "extra_position_like", set())),
             "max_sh_degree": self.max_sh_degree,
             "active_sh_degree": self.active_sh_degree,
             "extent": self.extent,
@@ -316,6 +351,10 @@ class GaussianModel(nn.Module):
         m = cls.__new__(cls)
         nn.Module.__init__(m)
         for n in PARAM_NAMES:
+            setattr(m, n, nn.Parameter(p[n].to(device).float()))
+        m.extra_lrs = {str(k): float(v) for k, v in (state.get("extra_lrs") or {}).items()}
+        m.extra_position_like = set(state.get("extra_position_like") or [])
+        for n in m.extra_lrs:
             setattr(m, n, nn.Parameter(p[n].to(device).float()))
         m.max_sh_degree = int(state["max_sh_degree"])
         m.active_sh_degree = int(state["active_sh_degree"])

@@ -22,8 +22,13 @@ from ..errors import RunError
 from ..io.checkpoint import load_checkpoint, read_run_json
 from ..raster import rasterization
 from ..raster.holes import fill_uncovered
+from . import trajectory as traj
 from .deformation import DeformationField
 from .gaussians import GaussianModel, num_sh_bases
+
+# per-Gaussian trajectory parameters (GaussianModel extras, issue 11): [N, K, 3] position
+# offsets and [N, K, 4] quaternion residuals (engine.scene.trajectory)
+TRAJ_MEANS, TRAJ_QUATS = "traj_means", "traj_quats"
 
 
 def default_device(device=None) -> torch.device:
@@ -65,6 +70,33 @@ class Model4D(nn.Module):
         # is saved as ``prior_mask`` (a render node has no spike stream to recompute it)
         self.static_prior = None
         self.prior_mask: torch.Tensor | None = None  # the prior's last value, as saved
+        # per-Gaussian trajectories (issue 11): {"knots": [F] seconds} when the Gaussians
+        # carry TRAJ_MEANS / TRAJ_QUATS; applied before the deformation field (a residual)
+        self.trajectory: dict | None = None
+
+    def add_trajectories(self, knots, lr_means: float, lr_quats: float) -> None:
+        """Give every Gaussian a (static) trajectory over ``knots`` (the RGB instants)."""
+        g = self.gaussians
+        knots = traj.default_knots(knots)
+        k = traj.num_controls(len(knots))
+        n = g.num_gaussians
+        g.add_extra(TRAJ_MEANS, torch.zeros(n, k, 3, device=g.means.device), lr_means)
+        g.add_extra(TRAJ_QUATS, torch.zeros(n, k, 4, device=g.means.device), lr_quats)
+        self.trajectory = {"knots": knots}
+
+    def trajectory_at(self, t: float, mask: torch.Tensor | None = None):
+        """(position offsets [N,3], quaternion residuals [N,4]) at ``t``; rows where the bool
+        ``mask`` is True (static Gaussians) are zero. None without trajectories."""
+        if self.trajectory is None:
+            return None
+        g = self.gaussians
+        knots = self.trajectory["knots"]
+        dm = traj.evaluate(getattr(g, TRAJ_MEANS), knots, t)
+        dq = traj.evaluate(getattr(g, TRAJ_QUATS), knots, t)
+        if mask is not None:
+            keep = (~mask).to(dm.dtype)[:, None]
+            dm, dq = dm * keep, dq * keep
+        return dm, dq
 
     def attributes(self, t: float, campos=None, fine: torch.Tensor | None = None,
                    motion_only: bool = False) -> dict:
@@ -79,6 +111,10 @@ class Model4D(nn.Module):
             means, quats, log_scales, opac = means.detach(), quats.detach(), log_scales.detach(), opac.detach()
             sh = g.sh.detach()
         color_delta = None
+        if self.use_deformation and self.trajectory is not None:
+            # the trajectory is motion: it stays trained under ``motion_only``
+            dm, dq = self.trajectory_at(t, self.effective_static_mask())
+            means, quats = means + dm, quats + dq
         if self.use_deformation and self.deformation is not None:
             static = self.effective_static_mask()
             mask = None if static is None else ~static
@@ -132,12 +168,14 @@ class Model4D(nn.Module):
         return {
             "gaussians": self.gaussians.state(),
             "deformation": None if self.deformation is None else {
-                "config": self.deformation.config(), "state_dict": self.deformation.state_dict()},
+                "config": self.deformation.config(), "state_dict": self.deformation.state_dict(),
+                "fine_windows": _fine_windows(self.deformation)},
             "use_deformation": self.use_deformation,
             "background": list(self.background),
             "near_plane": self.near_plane,
             "static_mask": _cpu_or_none(self.static_mask),
             "prior_mask": _cpu_or_none(self.prior_static()),
+            "trajectory": None if self.trajectory is None else dict(self.trajectory),
         }
 
     @classmethod
@@ -152,6 +190,7 @@ class Model4D(nn.Module):
             # wait in ``pending_fine_state`` for it
             deform.pending_fine_state = {k[len("fine_encoder."):]: sd.pop(k) for k in list(sd)
                                          if k.startswith("fine_encoder.")}
+            deform.pending_fine_windows = state["deformation"].get("fine_windows")
             deform.load_state_dict(sd)
             deform.to(device)
         m = cls(g, deform, background=state.get("background", (0, 0, 0)),
@@ -161,7 +200,21 @@ class Model4D(nn.Module):
         m.static_mask = None if sm is None else sm.to(device)
         pm = state.get("prior_mask")
         m.prior_mask = None if pm is None else pm.to(device)
+        tj = state.get("trajectory")
+        if tj is not None:
+            if not hasattr(g, TRAJ_MEANS) or not hasattr(g, TRAJ_QUATS):
+                raise ValueError("the model has trajectories but the Gaussians lack their parameters")
+            m.trajectory = {"knots": [float(x) for x in tj["knots"]]}
+            m.use_deformation = bool(state.get("use_deformation", True))
         return m
+
+
+def _fine_windows(field) -> dict | None:
+    """The spike fine branch's windows (issue 11: a run renders without its capture)."""
+    enc = getattr(field, "fine_encoder", None)
+    if enc is not None and hasattr(enc, "windows_state"):
+        return enc.windows_state()
+    return getattr(field, "pending_fine_windows", None)
 
 
 SAMPLE_KEYS = ("means", "quats", "scales", "opacities", "colors")  # Scene4D.sample arrays

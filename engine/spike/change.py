@@ -141,6 +141,5 @@ def change_from_cache(cache, *, block: int = 4, z: float = 6.0, q: float = 3.0) 
     for k in range(len(times) - 1):
         win = cache.window(0.5 * (times[k] + times[k + 1]))
         rates.append(win.tex[:, 0].cpu().numpy() / max(cache.threshold, 1e-12))
-        a, b = cache.stream.index_range(times[k], times[k + 1])
-        frames.append(max(1, b - a))
+        frames.append(max(1, cache.frames_in(k)))
     return detect_change(rates, frames, block=block, z=z, q=q)

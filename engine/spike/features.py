@@ -92,11 +92,11 @@ class SpikeWindowCache:
 
     @property
     def height(self) -> int:
-        return int(self.stream.height)
+        return int(self.stream.height) if self.stream is not None else self._size[0]
 
     @property
     def width(self) -> int:
-        return int(self.stream.width)
+        return int(self.stream.width) if self.stream is not None else self._size[1]
 
     def interval(self, t: float) -> int:
         return bracket(self.rgb_times, t)[0]
@@ -123,6 +123,43 @@ class SpikeWindowCache:
         if ch is None or ch.block != int(block):
             ch = self._change = change_from_cache(self, block=int(block))
         return ch
+
+    def frames_in(self, k: int) -> int:
+        """Spike frames in RGB interval ``k`` (from the stream, or as stored)."""
+        if self.stream is None:
+            return int(self._frames[k])
+        a, b = self.stream.index_range(self.rgb_times[k], self.rgb_times[k + 1])
+        return int(b - a)
+
+    # --- stored with a run (issue 11): a run renders without its capture ------------------
+    def state(self) -> dict:
+        """Every interval's textures, as tensors (computed first where missing): what the
+        fine branch reads at render time, so a checkpoint needs no spike stream."""
+        self.precompute()
+        n = len(self.rgb_times) - 1
+        wins = [self._cache[k] for k in range(n)]
+        return {"rgb_times": torch.as_tensor(self.rgb_times, dtype=torch.float64),
+                "k_sub": self.k_sub, "threshold": self.threshold,
+                "height": self.height, "width": self.width,
+                "frames": torch.as_tensor([self.frames_in(k) for k in range(n)], dtype=torch.int64),
+                "tex": torch.stack([w.tex.cpu() for w in wins]),
+                "times": torch.stack([w.times.cpu() for w in wins])}
+
+    @classmethod
+    def from_state(cls, state: dict, device="cpu") -> "SpikeWindowCache":
+        """A cache of stored windows (:meth:`state`); ``stream`` is None."""
+        c = cls.__new__(cls)
+        c.stream = None
+        c.rgb_times = np.asarray(state["rgb_times"], dtype=np.float64)
+        c.k_sub = int(state["k_sub"])
+        c.threshold = float(state["threshold"])
+        c.device = device
+        c._size = (int(state["height"]), int(state["width"]))
+        c._frames = [int(x) for x in state["frames"]]
+        tex, times = state["tex"], state["times"]
+        c._cache = {k: SpikeWindow(tex[k].to(device), times[k].to(device), float(c.rgb_times[k]),
+                                   float(c.rgb_times[k + 1]), k) for k in range(len(c.rgb_times) - 1)}
+        return c
 
     def precompute(self) -> "SpikeWindowCache":
         for k in range(len(self.rgb_times) - 1):

@@ -26,6 +26,9 @@ def frustum_cull_mask(trainer, margin_px: float = 0.0, times=None) -> torch.Tens
             for t in (times if times is not None else trainer.frame_times):
                 d = model.deformation(g.means, g.quats, g.log_scales, g.opacity_logits, float(t))
                 positions.append(d["means"].detach())
+        if model.trajectory is not None and model.use_deformation:  # per-Gaussian curves (issue 11)
+            for t in (times if times is not None else trainer.frame_times):
+                positions.append(model.attributes(float(t))["means"].detach())
         visible = torch.zeros(g.num_gaussians, dtype=torch.bool, device=g.means.device)
         scales = torch.exp(g.log_scales.detach())
         opac = torch.sigmoid(g.opacity_logits.detach())

@@ -365,7 +365,10 @@ class TrainFreezer:
     # -------------------------------------------------------------- bookkeeping
     def _active(self) -> bool:
         m = self.trainer.model
-        return m is not None and m.deformation is not None and m.use_deformation
+        # not with per-Gaussian trajectories (issue 11): freezing bakes the field's motion
+        # only, a frozen Gaussian would lose its trajectory offset
+        return (m is not None and m.deformation is not None and m.use_deformation
+                and getattr(m, "trajectory", None) is None)
 
     def _ensure(self) -> Freezer:
         g = self.trainer.model.gaussians

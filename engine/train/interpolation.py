@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["linear_blend", "lk_flow", "warp", "flow_interpolate", "interpolate", "block_colour_loss",
-           "avg_pool_blocks"]
+           "avg_pool_blocks", "resample_area"]
 
 
 def _to_bchw(img: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -182,17 +182,35 @@ def avg_pool_blocks(img: torch.Tensor, k: int = 4) -> torch.Tensor:
     return _from_bchw(y, single)
 
 
+def resample_area(img: torch.Tensor, size_hw) -> torch.Tensor:
+    """Channel-last [.., H, W, C] -> [.., h, w, C] by area averaging (``size_hw`` = (h, w));
+    each output pixel is the mean of the input pixels it overlaps (adaptive average pooling),
+    so a downscale keeps the mean colour of every region."""
+    x, single = _to_bchw(img)
+    h, w = int(size_hw[0]), int(size_hw[1])
+    if tuple(x.shape[-2:]) == (h, w):
+        return img
+    return _from_bchw(F.interpolate(x, size=(h, w), mode="area"), single)
+
+
 def block_colour_loss(pred: torch.Tensor, target: torch.Tensor, k: int = 4,
                       mask: torch.Tensor | None = None, k_target: int | None = None) -> torch.Tensor:
     """Paper Eq. 20: ``|| AvgPool_k(target) - AvgPool_k(pred) ||_1`` (mean).
 
     ``k_target``: block size on the target when it has another resolution than ``pred``
     (e.g. a half-resolution render with ``k=2`` against a full-resolution frame with
-    ``k_target=4``: the same blocks)."""
+    ``k_target=4``: the same blocks). Any sizes work: where the two block grids differ
+    (sizes not divisible by the block, rounded render sizes), ``target`` -- a frame or
+    its blocks, showing the same field of view as ``pred`` -- is area-resampled onto the
+    render's pixel grid first (:func:`resample_area`)."""
     pb = avg_pool_blocks(pred, k)
-    tb = avg_pool_blocks(target.to(pred.dtype), k if k_target is None else k_target)
-    if tb.shape != pb.shape:
-        raise ValueError(f"block grids differ: render {tuple(pb.shape)} vs target {tuple(tb.shape)}")
+    target = target.to(pred.dtype)
+    tb = avg_pool_blocks(target, k if k_target is None else k_target)
+    if tb.shape[-3:-1] != pb.shape[-3:-1]:
+        # e.g. a 161x121 frame (41x31 blocks of 4) against its half-resolution render
+        # 80x60 (40x30 blocks of 2): both show the same field of view, so the target is
+        # area-resampled onto the render's pixel grid and pooled with the render's blocks
+        tb = avg_pool_blocks(resample_area(target, pred.shape[-3:-1]), k)
     d = (pb - tb).abs()
     if mask is not None:
         m = avg_pool_blocks(mask.to(pred.dtype)[..., None] if mask.dim() == pred.dim() - 1 else mask, k)

@@ -13,6 +13,9 @@ import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim
 
+from ..scene.model import TRAJ_MEANS
+from ..scene.rigidity import knn_neighbours, rigidity_losses
+from ..scene.trajectory import inner_residuals
 from .geometry_losses import geometry_loss_terms
 from .presets import TrainConfig
 
@@ -85,6 +88,36 @@ def _deform_reg(ctx: StepContext):
     return d.regularization(cfg.tv_weight, smooth, cfg.time_l1_weight)
 
 
+def _traj_reg(ctx: StepContext):
+    """Mean squared inner-point residual of the trajectories / extent^2 (engine.scene.trajectory):
+    with zero residuals the in-between motion is the Catmull-Rom curve through the RGB
+    instants; only the between-frame losses have a reason to bend it."""
+    m = ctx.trainer.model
+    if m.trajectory is None or not m.use_deformation:
+        return None
+    d = inner_residuals(getattr(m.gaussians, TRAJ_MEANS))
+    if d.numel() == 0:
+        return None
+    return (d ** 2).sum(-1).mean() / ctx.trainer.extent ** 2
+
+
+def _rigidity(ctx: StepContext):
+    """Luiten et al.'s local rigidity (rigidity + rotation similarity + isometry over kNN,
+    engine.scene.rigidity) between the canonical Gaussians and the render's instant; the
+    neighbours are recomputed when the Gaussians change (densification) or every 100 steps."""
+    tr, g = ctx.trainer, ctx.trainer.model.gaussians
+    cache = getattr(tr, "_rigidity_nbrs", None)
+    if cache is None or cache[0] != g.num_gaussians or ctx.step - cache[1] >= 100:
+        nbr, w = knn_neighbours(g.means.detach(), int(tr.cfg.rigidity_k))
+        cache = tr._rigidity_nbrs = (g.num_gaussians, ctx.step, nbr, w)
+    parts = rigidity_losses(g.means.detach(), g.quats.detach(), ctx.attrs["means"], ctx.attrs["quats"],
+                            cache[2], cache[3])
+    return (parts["rigid"] + parts["rot"] + parts["iso"]) / tr.extent
+
+
+MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")
+
+
 def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
     terms = [LossTerm("l1", 1.0 - cfg.lambda_dssim, _l1)]
     if cfg.lambda_dssim > 0:
@@ -95,4 +128,8 @@ def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
         terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
     terms.extend(geometry_loss_terms(cfg, LossTerm))  # issue 14 (engine.train.geometry_losses)
     terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
+    if cfg.rigidity_weight > 0:
+        terms.append(LossTerm("rigidity", cfg.rigidity_weight, _rigidity, stages=("deform",)))
+    if "trajectory" in cfg.motion and cfg.traj_inner_weight > 0:
+        terms.append(LossTerm("traj_reg", cfg.traj_inner_weight, _traj_reg, stages=("deform",)))
     return terms

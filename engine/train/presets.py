@@ -67,6 +67,19 @@ class TrainConfig:
     time_smooth_weight: float = 1e-3  # second difference along t of the time planes
     time_l1_weight: float = 1e-4      # time planes close to 1 (static by default)
 
+    # ---- motion representation (issue 11; engine.scene.trajectory) --------------------------
+    motion: str = "hexplane"          # hexplane | trajectory | trajectory+hexplane (HexPlane as a residual)
+    lr_traj: float = 1.6e-3           # x extent: per-Gaussian trajectory control points, decays to lr_traj_final
+    lr_traj_final: float = 1.6e-5
+    lr_traj_quats: float = 1e-3       # quaternion residual curve
+    traj_carry: str = "velocity"      # admitted RGB instants start from: flow (stereo + optical flow) | velocity | hold
+    # x extent: with traj_carry=flow, hidden Gaussians take the motion of the nearest carried /
+    # still one within this distance (0: off)
+    traj_carry_hidden: float = 0.05
+    traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
+    rigidity_weight: float = 0.0      # Luiten et al. local rigidity (rigid + rot + iso over kNN) / extent; 0: off
+    rigidity_k: int = 8               # neighbours of the rigidity prior
+
     # ---- loss -------------------------------------------------------------------------
     lambda_dssim: float = 0.2
     lambda_block: float = 0.5         # L1 of 4x4 average-pooled images (paper Eq. 20 block loss)

@@ -42,12 +42,13 @@ from ..geometry.init_points import initial_points
 from ..geometry.stereo import stereo_depth_priors
 from ..scene.deformation import make_field
 from ..scene.gaussians import GaussianModel
-from ..scene.model import Model4D, near_plane_for_extent, view_tensors
+from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
+from ..scene.trajectory import extrapolate_junctions
 from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
 from .geometry_losses import geometry_post_step_hooks, step_background
-from .losses import LossTerm, StepContext, default_loss_terms
+from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms
 from .presets import TrainConfig
 from .spike_guidance import guidance_factory, spike_stream_info
 
@@ -154,6 +155,7 @@ class Trainer:
         self.extent = 1.0
         self.last_losses: dict = {}
         self._carried_to = -math.inf  # latest frame time whose motion was carried forward
+        self.carry_info: list[dict] = []  # trajectories carried by scene flow (traj_carry="flow")
         # skipping: owned by the trainer, checkpointed in state()
         self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.freeze_static else None
         self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.early_stop else None
@@ -237,7 +239,17 @@ class Trainer:
         g._replace = _replace
 
     def start_deformation(self) -> None:
-        """Create the deformation field around the current canonical Gaussians."""
+        """Start the motion of ``cfg.motion``: per-Gaussian trajectories (issue 11,
+        engine.scene.trajectory) and / or the deformation field around the current canonical
+        Gaussians (with both, the field is a residual on top of the trajectories)."""
+        motion = self.cfg.motion
+        if motion not in MOTIONS:
+            raise ValueError(f"unknown motion representation {motion!r}; choose one of {', '.join(MOTIONS)}")
+        self.model.use_deformation = True
+        if "trajectory" in motion:
+            self.model.add_trajectories(self.frame_times, self.cfg.lr_traj * self.extent, self.cfg.lr_traj_quats)
+        if "hexplane" not in motion:
+            return
         g = self.model.gaussians
         means = g.means.detach().cpu().numpy()
         lo, hi = robust_bounds(means)
@@ -284,6 +296,10 @@ class Trainer:
         self._carried_to = t_prev
         if last == -math.inf:
             return
+        if self.model.trajectory is not None:  # later knots start from the motion so far
+            self._carry_trajectories(last)
+        if d is None:
+            return
         u = (d.normalize_time(last) + 1.0) / 2.0
         with torch.no_grad():
             for p in d.grid.temporal:
@@ -291,6 +307,21 @@ class Trainer:
                 c = min(T - 1, int(math.ceil(u * (T - 1) - 1e-6)))
                 if c < T - 1:
                     p[:, :, c + 1:, :] = p[:, :, c:c + 1, :]
+
+    def _carry_trajectories(self, last: float) -> None:
+        """Knots after ``last`` start at constant velocity (``traj_carry=velocity``), hold
+        (``hold``), or where optical flow + per-instant stereo put each Gaussian (``flow``,
+        engine.train.scene_flow; constant velocity for what it cannot see)."""
+        knots = self.model.trajectory["knots"]
+        li = int(np.argmin([abs(k - last) for k in knots]))
+        g = self.model.gaussians
+        mode = "velocity" if self.cfg.traj_carry == "flow" else self.cfg.traj_carry
+        extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=mode)
+        extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")
+        if self.cfg.traj_carry == "flow" and li + 1 < len(knots):
+            from .scene_flow import carry_trajectories
+
+            self.carry_info.append(carry_trajectories(self, train_frames(self.capture), knots, li, li + 1))
 
     def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
         """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
@@ -300,9 +331,14 @@ class Trainer:
 
     def _update_lrs(self, step: int) -> None:
         self.model.gaussians.update_learning_rate(step / max(1, self.total_steps - 1))
+        s0 = self.static_steps
+        p = min(1.0, max(0.0, (step - s0) / max(1, self.total_steps - s0 - 1)))
+        if self.model.trajectory is not None:  # decays over the deformation stage, like the field
+            for grp in self.model.gaussians.optimizer.param_groups:
+                if grp["name"] == TRAJ_MEANS:
+                    grp["lr"] = self.extent * math.exp(math.log(self.cfg.lr_traj) * (1 - p)
+                                                       + math.log(self.cfg.lr_traj_final) * p)
         if self.deform_opt is not None:
-            s0 = self.static_steps
-            p = min(1.0, max(0.0, (step - s0) / max(1, self.total_steps - s0 - 1)))
             for grp in self.deform_opt.param_groups:
                 if grp["name"] == "grid":
                     grp["lr"] = math.exp(math.log(self.cfg.lr_grid) * (1 - p) + math.log(self.cfg.lr_grid_final) * p)
@@ -315,7 +351,7 @@ class Trainer:
         model = self.model
         g = model.gaussians
         stage = self.stage_of(step)
-        if stage == "deform" and model.deformation is None:
+        if stage == "deform" and not model.use_deformation:
             self.start_deformation()
         if cfg.sh_degree > 0 and cfg.sh_step_fraction > 0:
             want = min(cfg.sh_degree, int(step / max(1, cfg.sh_step_fraction * self.total_steps)))

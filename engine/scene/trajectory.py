@@ -1,0 +1,162 @@
+"""Per-Gaussian parametric trajectories: piecewise cubic Bezier curves over capture time.
+
+A HexPlane field (``engine.deformation``) shares its motion through a grid: a fast object
+that moves about its own size per frame becomes a ghost (issue 11). Here every Gaussian
+owns its curve, as in E-NeMF (Bezier control points, ``../shared/papers/e-nemf.txt``
+Sec. 3.2, Eq. 4-5) and Spacetime Gaussians (per-Gaussian polynomial motion).
+
+The curve is piecewise cubic Bezier with one segment per interval between *knots* (the
+capture's RGB instants ``T_0 < ... < T_{F-1}``). One parameter tensor per Gaussian holds,
+along its second axis (``K = 3 (F - 1) + 1`` entries, ``C`` channels):
+
+* ``params[:, 3 i]`` -- the junction value ``X_i`` at knot ``T_i`` (what both RGB cameras
+  see at that instant: the curve passes exactly through it);
+* ``params[:, 3 i + 1]``, ``params[:, 3 i + 2]`` -- residuals ``D_i0, D_i1`` of segment
+  ``i``'s inner control points from their Catmull-Rom defaults::
+
+      P1 = X_i     + v_i     h_i / 3 + D_i0        v_i = (X_{i+1} - X_{i-1}) / (T_{i+1} - T_{i-1})
+      P2 = X_{i+1} - v_{i+1} h_i / 3 + D_i1        (one-sided at the ends), h_i = T_{i+1} - T_i
+
+  With zero residuals the curve is the C1 Catmull-Rom spline through the junctions, so a
+  run supervised at the RGB instants only gets smooth in-between motion for free; the
+  between-frame losses (spike / block colour) move the residuals: the inner control
+  points of E-NeMF's curves.
+
+For ``t`` in segment ``i`` with ``u = (t - T_i) / h_i``:
+``B(u) = (1-u)^3 X_i + 3 (1-u)^2 u P1 + 3 (1-u) u^2 P2 + u^3 X_{i+1}``; ``t`` outside
+``[T_0, T_{F-1}]`` is clamped (the curve holds its end values).
+
+Shapes: ``params`` [N, K, C] (C = 3 for position offsets, 4 for quaternion residuals),
+``knot_times`` [F] ascending (seconds); results [N, C]. Everything is differentiable in
+``params`` (torch autograd); only the four junctions and two residuals around ``t`` are
+gathered, so a call costs O(N) whatever the number of knots.
+"""
+from __future__ import annotations
+
+import torch
+
+__all__ = ["num_controls", "num_knots", "segment_of", "bezier_controls", "evaluate", "junctions",
+           "extrapolate_junctions", "inner_residuals", "default_knots"]
+
+
+def num_controls(n_knots: int) -> int:
+    """``K`` parameter entries for ``n_knots`` knots (1 knot: a constant offset)."""
+    return 3 * (max(1, int(n_knots)) - 1) + 1
+
+
+def num_knots(n_controls: int) -> int:
+    """Inverse of :func:`num_controls`."""
+    if (int(n_controls) - 1) % 3:
+        raise ValueError(f"{n_controls} trajectory controls: expected 3 (F - 1) + 1")
+    return (int(n_controls) - 1) // 3 + 1
+
+
+def _knots(knot_times) -> list[float]:
+    k = [float(x) for x in knot_times]
+    if any(b <= a for a, b in zip(k, k[1:])):
+        raise ValueError(f"trajectory knot times must increase strictly: {k}")
+    return k
+
+
+def segment_of(knot_times, t: float) -> tuple[int, float]:
+    """(segment index ``i``, local parameter ``u`` in [0, 1]) of time ``t`` (clamped)."""
+    k = _knots(knot_times)
+    if len(k) < 2:
+        return 0, 0.0
+    t = min(max(float(t), k[0]), k[-1])
+    i = 0
+    while i < len(k) - 2 and t >= k[i + 1]:
+        i += 1
+    return i, (t - k[i]) / (k[i + 1] - k[i])
+
+
+def junctions(params: torch.Tensor) -> torch.Tensor:
+    """The curve's values at the knots: [N, F, C]."""
+    return params[:, 0::3]
+
+
+def inner_residuals(params: torch.Tensor) -> torch.Tensor:
+    """The inner control points' residuals ``D``: [N, F - 1, 2, C]."""
+    n, k, c = params.shape
+    if k == 1:
+        return params.new_zeros(n, 0, 2, c)
+    inner = params[:, :-1].reshape(n, (k - 1) // 3, 3, c)
+    return inner[:, :, 1:]
+
+
+def _tangent(X: torch.Tensor, k: list[float], i: int) -> torch.Tensor:
+    """Catmull-Rom velocity at knot ``i`` (one-sided at the ends); X [N, F, C]."""
+    a, b = max(i - 1, 0), min(i + 1, len(k) - 1)
+    return (X[:, b] - X[:, a]) / (k[b] - k[a])
+
+
+def _segment_controls(params: torch.Tensor, k: list[float], i: int) -> tuple:
+    X = junctions(params)
+    h = k[i + 1] - k[i]
+    p0, p3 = X[:, i], X[:, i + 1]
+    p1 = p0 + _tangent(X, k, i) * (h / 3.0) + params[:, 3 * i + 1]
+    p2 = p3 - _tangent(X, k, i + 1) * (h / 3.0) + params[:, 3 * i + 2]
+    return p0, p1, p2, p3
+
+
+def bezier_controls(params: torch.Tensor, knot_times) -> torch.Tensor:
+    """Absolute Bezier control points of every segment: [N, K, C] (entry ``3 i`` is
+    ``X_i``, ``3 i + 1`` and ``3 i + 2`` the inner points of segment ``i``)."""
+    k = _knots(knot_times)
+    if params.shape[1] != num_controls(len(k)):
+        raise ValueError(f"trajectory params have {params.shape[1]} controls; {len(k)} knots need "
+                         f"{num_controls(len(k))}")
+    if len(k) == 1:
+        return params
+    out = []
+    for i in range(len(k) - 1):
+        p0, p1, p2, _ = _segment_controls(params, k, i)
+        out += [p0, p1, p2]
+    out.append(junctions(params)[:, -1])
+    return torch.stack(out, dim=1)
+
+
+def evaluate(params: torch.Tensor, knot_times, t: float) -> torch.Tensor:
+    """The curves at capture time ``t``: [N, C] (E-NeMF Eq. 5 with cubic segments)."""
+    k = _knots(knot_times)
+    if params.shape[1] != num_controls(len(k)):
+        raise ValueError(f"trajectory params have {params.shape[1]} controls; {len(k)} knots need "
+                         f"{num_controls(len(k))}")
+    if len(k) == 1:
+        return params[:, 0]
+    i, u = segment_of(k, t)
+    p0, p1, p2, p3 = _segment_controls(params, k, i)
+    v = 1.0 - u
+    return (v * v * v) * p0 + (3.0 * v * v * u) * p1 + (3.0 * v * u * u) * p2 + (u * u * u) * p3
+
+
+@torch.no_grad()
+def extrapolate_junctions(params: torch.Tensor, knot_times, last: int, first_new: int,
+                          mode: str = "velocity") -> None:
+    """Start knots ``first_new..`` (not trained yet) from the motion up to knot ``last`` --
+    the time curriculum admits frames in order; a fast object has moved about its own size
+    by the next frame, so starting it where it last was gives no overlap to follow.
+
+    ``mode``: ``"hold"`` copies ``X_last``; ``"velocity"`` continues the last segment's
+    velocity (constant-velocity prediction; ``"hold"`` when ``last`` is the first knot).
+    In place on ``params``; the inner residuals of the new segments are zeroed."""
+    k = _knots(knot_times)
+    X = params[:, 0::3]
+    if first_new >= len(k) or last < 0:
+        return
+    base = X[:, last].clone()
+    vel = None
+    if mode == "velocity" and last >= 1:
+        vel = (X[:, last] - X[:, last - 1]) / (k[last] - k[last - 1])
+    for j in range(first_new, len(k)):
+        val = base if vel is None else base + vel * (k[j] - k[last])
+        params[:, 3 * j] = val
+        if j >= 1:
+            params[:, 3 * (j - 1) + 1: 3 * (j - 1) + 3] = 0.0
+
+
+def default_knots(frame_times) -> list[float]:
+    """Distinct RGB instants (rounded to 1 ns), ascending: the curve's knots."""
+    ks = sorted({round(float(t), 9) for t in frame_times})
+    return ks if ks else [0.0]
+

@@ -1,0 +1,147 @@
+"""Scene flow of Gaussians between two RGB instants: 2D flow + per-instant stereo depth.
+
+The time curriculum admits RGB instants in order; a Gaussian on a fast object (about its
+own size per frame, issue 11) that starts the next instant where it was has no overlap
+with its new image, so photometric gradients cannot find it. Both cameras see every RGB
+instant, so stereo depth pins *where* the surface is at each instant and optical flow
+says *which* pixel went where. :func:`carry_by_flow` moves each Gaussian that is the
+visible surface at ``t_a`` (its depth agrees with the confident stereo depth at its pixel)
+along the flow to ``t_b`` and lifts it with the stereo depth there::
+
+    x_b = backproject(view, uv_a + flow_ab(uv_a), depth_b(uv_a + flow_ab(uv_a)))
+
+Gaussians that are hidden, outside the image, on unconfident depth or that do not move
+(|flow| below ``min_flow_px``) are left to the caller's fallback (constant velocity).
+Shapes: positions [N, 3] (world), images [H, W, 3] float, depth maps [H, W] (camera z,
+the stereo's planar depth) with bool confidence masks [H, W].
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..cameras import View, project_points
+from ..geometry.stereo import stereo_depth_priors
+from ..scene.model import TRAJ_MEANS
+from .interpolation import lk_flow
+
+__all__ = ["image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden", "carry_trajectories"]
+
+
+def image_flow(img_a: np.ndarray, img_b: np.ndarray) -> np.ndarray:
+    """Dense flow [H, W, 2] (x, y pixels) with ``a(p) ~ b(p + flow(p))`` (engine.interpolation.lk_flow)."""
+    a = torch.as_tensor(np.asarray(img_a, np.float32)[..., :3]).permute(2, 0, 1)[None]
+    b = torch.as_tensor(np.asarray(img_b, np.float32)[..., :3]).permute(2, 0, 1)[None]
+    return lk_flow(a, b)[0].permute(1, 2, 0).numpy()
+
+
+def backproject_pixels(view: View, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points [N, 3] of pixel coordinates ``uv`` [N, 2] (corner at (0, 0)) at camera
+    z ``depth`` [N]: the inverse of :func:`engine.cameras.project_points`."""
+    k = view.intrinsics
+    z = np.asarray(depth, np.float64)
+    cam = np.stack([(uv[:, 0] - k.cx) / k.fx * z, (uv[:, 1] - k.cy) / k.fy * z, z, np.ones_like(z)], 1)
+    return (np.linalg.inv(view.viewmat) @ cam.T).T[:, :3]
+
+
+def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    ui = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 1)
+    vi = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
+    return img[vi, ui]
+
+
+def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_a: np.ndarray, ok_a: np.ndarray,
+                  depth_b: np.ndarray, ok_b: np.ndarray, *, depth_tol: float = 0.05,
+                  min_flow_px: float = 0.5, return_still: bool = False):
+    """(positions at ``t_b`` [N, 3], carried bool [N]) for Gaussians at ``positions`` (``t_a``)
+    seen by the static camera ``view``; rows not carried are returned unchanged. With
+    ``return_still`` also the bool [N] of visible surface Gaussians that do not move."""
+    pos = np.asarray(positions, np.float64)
+    uv, z = project_points(view, pos)
+    h, w = depth_a.shape
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    uv_c = np.where(inside[:, None], uv, 0.0)
+    da = _sample(depth_a, uv_c)
+    surface = inside & _sample(ok_a, uv_c) & (np.abs(z - da) <= depth_tol * np.maximum(da, 1e-9))
+    f = _sample(flow_ab, uv_c)
+    uv_b = uv_c + f
+    inside_b = (uv_b[:, 0] >= 0) & (uv_b[:, 0] < w) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] < h)
+    uv_b = np.where(inside_b[:, None], uv_b, 0.0)
+    db = _sample(depth_b, uv_b)
+    moving = np.linalg.norm(f, axis=1) >= min_flow_px
+    carried = surface & inside_b & _sample(ok_b, uv_b) & moving
+    out = pos.copy()
+    if carried.any():
+        # keep the Gaussian's offset from the surface along the ray (it sat at z, the surface at da)
+        out[carried] = backproject_pixels(view, uv_b[carried], db[carried] + (z - da)[carried])
+    if return_still:
+        return out.astype(np.float32), carried, surface & ~moving
+    return out.astype(np.float32), carried
+
+
+@torch.no_grad()
+def propagate_to_hidden(positions: np.ndarray, delta: np.ndarray, decided: np.ndarray, max_dist: float,
+                        chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """Give each undecided Gaussian (hidden at ``t_a``: inside or behind a moving object)
+    the displacement of its nearest decided one (carried, or a still visible surface) within
+    ``max_dist``: what lies under a surface moves with it, instead of staying behind as
+    specks (measured on the novel scene's ball, issue 11). Returns (delta [N, 3], taken [N])."""
+    pos = torch.as_tensor(np.asarray(positions, np.float32))
+    out = np.asarray(delta, np.float32).copy()
+    taken = np.zeros(len(pos), dtype=bool)
+    src = np.nonzero(decided)[0]
+    dst = np.nonzero(~decided)[0]
+    if len(src) == 0 or len(dst) == 0:
+        return out, taken
+    ps = pos[torch.from_numpy(src)]
+    for s in range(0, len(dst), chunk):
+        idx = dst[s:s + chunk]
+        d, j = torch.cdist(pos[torch.from_numpy(idx)], ps).min(dim=1)
+        ok = (d <= max_dist).numpy()
+        out[idx[ok]] = out[src[j.numpy()[ok]]]
+        taken[idx[ok]] = True
+    return out, taken
+
+
+def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
+    """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i`` in
+    a train camera along that camera's optical flow, lifted by the stereo depth at
+    ``knots[j]`` (``frames``: the train RGB frames); hidden Gaussians follow their nearest decided neighbour
+    (``traj_carry_hidden`` x extent); later knots hold the result. Returns counts (run.json)."""
+    if getattr(trainer, "_stereo_priors", None) is None:
+        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames)
+    pri = trainer._stereo_priors
+    g = trainer.model.gaussians
+    with torch.no_grad():
+        pos_i = trainer.model.attributes(knots[i])["means"].detach().cpu().numpy()
+    todo = np.ones(len(pos_i), dtype=bool)
+    still = np.zeros(len(pos_i), dtype=bool)
+    delta = np.zeros_like(pos_i)
+    by_cam: dict = {}
+    for f in frames:
+        by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
+    for at in by_cam.values():
+        fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
+        if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
+            continue
+        flow = image_flow(fa.load_rgb(), fb.load_rgb())
+        new, ok, st = carry_by_flow(pos_i, trainer.capture.view(fa), flow, *pri[id(fa)], *pri[id(fb)],
+                                    return_still=True)
+        ok &= todo
+        delta[ok] = new[ok] - pos_i[ok]
+        todo &= ~ok
+        still |= st
+    n_flow = int((~todo).sum())
+    if trainer.cfg.traj_carry_hidden > 0:
+        delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, trainer.cfg.traj_carry_hidden * trainer.extent)
+        todo &= ~(taken & (np.abs(delta).sum(1) > 0))
+    carried = ~todo
+    if carried.any():
+        tm = getattr(g, TRAJ_MEANS).data
+        idx = torch.from_numpy(np.nonzero(carried)[0]).to(tm.device)
+        d = torch.from_numpy(delta[carried]).to(tm)
+        for k in range(j, len(knots)):
+            tm[idx, 3 * k] = tm[idx, 3 * i] + d
+    return {"from": float(knots[i]), "to": float(knots[j]), "carried": int(carried.sum()), "by_flow": n_flow,
+            "total": int(len(carried))}

@@ -1,0 +1,67 @@
+"""Scene flow of Gaussians between RGB instants from optical flow + stereo depth (issue 11)."""
+from __future__ import annotations
+
+import numpy as np
+
+from engine.cameras import Intrinsics, View, look_at_c2w, project_points
+from engine.train.scene_flow import backproject_pixels, carry_by_flow, image_flow
+
+
+def _view():
+    c2w = look_at_c2w((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0))
+    return View(c2w=c2w, intrinsics=Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), time=0.0)
+
+
+def test_backproject_inverts_project():
+    v = _view()
+    pts = np.array([[0.1, 0.0, 0.2], [-0.5, 1.0, 0.3]])
+    uv, z = project_points(v, pts)
+    np.testing.assert_allclose(backproject_pixels(v, uv, z), pts, atol=1e-9)
+
+
+def test_visible_moving_gaussians_follow_flow_and_depth_hidden_ones_stay():
+    v = _view()
+    depth_a = np.full((60, 80), 5.0, np.float32)
+    ok = np.ones((60, 80), bool)
+    depth_b = np.full((60, 80), 4.0, np.float32)  # the surface came 1 m closer
+    flow = np.zeros((60, 80, 2), np.float32)
+    flow[..., 0] = 7.0  # 7 px to the right
+    pts = np.array([[0.0, 0.0, 0.0],     # on the surface (camera z 5)
+                    [0.0, 2.0, 0.0],     # behind it (z 7): hidden, stays
+                    [50.0, 0.0, 0.0]])   # outside the image, stays
+    new, carried = carry_by_flow(pts, v, flow, depth_a, ok, depth_b, ok)
+    assert carried.tolist() == [True, False, False]
+    uv_a, _ = project_points(v, pts[:1])
+    uv_b, z_b = project_points(v, new[:1])
+    np.testing.assert_allclose(uv_b - uv_a, [[7.0, 0.0]], atol=1e-3)
+    np.testing.assert_allclose(z_b, [4.0], atol=1e-4)
+    np.testing.assert_array_equal(new[1:], pts[1:].astype(np.float32))
+    # unconfident depth at the target, or no motion: not carried
+    _, c = carry_by_flow(pts, v, flow, depth_a, ok, depth_b, np.zeros_like(ok))
+    assert not c.any()
+    _, c = carry_by_flow(pts, v, np.zeros_like(flow), depth_a, ok, depth_b, ok)
+    assert not c.any()
+
+
+def test_image_flow_finds_a_shift():
+    rng = np.random.default_rng(0)
+    base = rng.uniform(size=(16, 20, 3)).astype(np.float32)
+    a = np.kron(base, np.ones((4, 4, 1), np.float32))  # 64x80, blocky texture
+    b = np.roll(a, 3, axis=1)  # content moves 3 px right: a(p) = b(p + 3)
+    f = image_flow(a, b)
+    assert f.shape == (64, 80, 2)
+    assert abs(float(np.median(f[8:-8, 8:-8, 0])) - 3.0) < 0.5 and abs(float(np.median(f[8:-8, 8:-8, 1]))) < 0.5
+
+
+def test_hidden_gaussians_follow_their_nearest_decided_neighbour():
+    from engine.train.scene_flow import propagate_to_hidden
+
+    pos = np.array([[0.0, 0, 0], [0.01, 0, 0], [1.0, 0, 0], [0.02, 0, 0], [5.0, 0, 0]])
+    delta = np.zeros((5, 3), np.float32)
+    delta[0] = [0.1, 0, 0]  # carried by flow
+    decided = np.array([True, False, True, False, False])  # 2: a still surface (delta 0)
+    out, taken = propagate_to_hidden(pos, delta, decided, max_dist=0.5)
+    np.testing.assert_allclose(out[1], [0.1, 0, 0])
+    np.testing.assert_allclose(out[3], [0.1, 0, 0])
+    assert taken.tolist() == [False, True, False, True, False]  # 4 is too far from anything decided
+    np.testing.assert_allclose(out[4], 0.0)

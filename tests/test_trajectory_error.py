@@ -1,0 +1,64 @@
+"""The trajectory-error diagnostic (scripts/trajectory_error.py, issue 11) on synthetic truth."""
+from __future__ import annotations
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from engine.cameras import Intrinsics, View, look_at_c2w
+from engine.errors import CaptureError
+
+_spec = importlib.util.spec_from_file_location("trajectory_error", __file__.rsplit("/tests/", 1)[0]
+                                               + "/scripts/trajectory_error.py")
+te = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(te)
+
+
+def _truth(tmp_path):
+    times = np.linspace(0.0, 0.2, 201)
+    mats = np.repeat(np.eye(4)[None], len(times), 0)
+    mats[:, 0, 3] = 5.0 * times  # 5 m/s along x
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(400, 3))
+    pts = 0.1 * pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    np.savez(tmp_path / "objects.npz", times=times, ball=mats, ball_points=pts)
+    (tmp_path / "transforms.json").write_text(json.dumps({"ground_truth": {"objects": {
+        "file_path": "objects.npz", "rate_hz": 1000.0, "t0": 0.0, "names": ["ball"]}}}))
+    return te.load_object_truth(tmp_path), pts
+
+
+def test_errors_split_along_the_ray_and_across(tmp_path):
+    truth, pts = _truth(tmp_path)
+    view = View(intrinsics=Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0),
+                c2w=look_at_c2w((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)), time=0.0)
+    rgb = [0.0, 0.1, 0.2]
+    x0 = pts * 0.9  # Gaussians just inside the surface samples
+    stray = np.array([[3.0, 3.0, 3.0]])  # on no object
+    opac = np.ones(len(x0) + 1)
+
+    def exact(t):
+        return np.concatenate([x0 + [5.0 * t, 0, 0], stray])
+
+    r = te.trajectory_errors(exact, opac, truth, rgb, view, per_interval=3)["ball"]
+    assert r["gaussians"] == len(x0) and r["instants"] == 6
+    assert r["ray_mm"] < 1e-6 and r["plane_mm"] < 1e-6 and r["plane_px"] < 1e-6
+
+    def along_y(t):  # 2 cm off along +y (~the spike camera's viewing direction) between frames
+        return exact(t) + (0.0 if t in rgb else 1.0) * np.array([0.0, 0.02, 0.0])
+
+    r = te.trajectory_errors(along_y, opac, truth, rgb, view, per_interval=3)["ball"]
+    assert 18.0 < r["ray_mm"] < 20.5 and r["plane_mm"] < 3.0
+
+    def across_z(t):  # 2 cm off along z: in the image plane, ~0.28 px at 5 m with f = 70
+        return exact(t) + (0.0 if t in rgb else 1.0) * np.array([0.0, 0.0, 0.02])
+
+    r = te.trajectory_errors(across_z, opac, truth, rgb, view, per_interval=3)["ball"]
+    assert 18.0 < r["plane_mm"] < 20.5 and r["ray_mm"] < 3.0 and 0.2 < r["plane_px"] < 0.35
+
+
+def test_missing_truth_is_a_clear_error(tmp_path):
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": []}))
+    with pytest.raises(CaptureError, match="ground_truth"):
+        te.load_object_truth(tmp_path)
