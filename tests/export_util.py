@@ -5,6 +5,7 @@ import numpy as np
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
+from engine.io.checkpoint import save_checkpoint
 from engine.scene.deformation import DeformationField
 from engine.scene.gaussians import GaussianModel
 from engine.scene.model import Model4D, view_tensors
@@ -42,3 +43,11 @@ def render_model(model: Model4D, view: View) -> np.ndarray:
     with torch.no_grad():
         rgb, _, _, _ = model.render(view_tensors(view, "cpu"), render_depth=False)
     return rgb[0].clamp(0, 1).numpy()
+
+
+def write_run(run_dir, n: int, sh_degree: int = 1):
+    """A one-step run folder holding ``moving_model(n, sh_degree)``: what the export
+    front ends (CLI, Blender operators) open."""
+    save_checkpoint(run_dir, {"model": moving_model(n=n, sh_degree=sh_degree).state(), "step": 1, "total_steps": 1,
+                              "time_range": list(TIME_RANGE), "gaussians": n})
+    return run_dir

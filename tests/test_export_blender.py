@@ -5,20 +5,14 @@ from __future__ import annotations
 import blender_util
 import numpy as np
 import pytest
-from export_util import TIME_RANGE, moving_model
+from export_util import TIME_RANGE, write_run
 
 bpy = pytest.importorskip("bpy")
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    from engine.io.checkpoint import save_checkpoint
-
-    d = tmp_path_factory.mktemp("bt4d_export") / "run"
-    model = moving_model(n=120, sh_degree=1)
-    save_checkpoint(d, {"model": model.state(), "step": 1, "total_steps": 1, "time_range": list(TIME_RANGE),
-                        "gaussians": 120})
-    return d
+    return write_run(tmp_path_factory.mktemp("bt4d_export") / "run", n=120)
 
 
 @pytest.fixture()

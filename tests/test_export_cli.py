@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from export_util import TIME_RANGE, camera, moving_model
+from export_util import TIME_RANGE, camera, write_run
 
 from engine.__main__ import main
 from engine.evaluate.metrics import psnr
@@ -15,13 +15,7 @@ from engine.scene.model import load_run, view_tensors
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    from engine.io.checkpoint import save_checkpoint
-
-    d = tmp_path_factory.mktemp("export_cli") / "run"
-    model = moving_model(n=200, sh_degree=1)
-    save_checkpoint(d, {"model": model.state(), "step": 1, "total_steps": 1, "time_range": list(TIME_RANGE),
-                        "gaussians": 200})
-    return d
+    return write_run(tmp_path_factory.mktemp("export_cli") / "run", n=200)
 
 
 def test_export_ply_at_fps(run_dir, tmp_path, capsys):
