@@ -192,3 +192,22 @@ def test_capture_stereo_init_covers_the_scene(small_capture):
     pts = initial_points(small_capture, "stereo", max_points=2000)
     assert pts.method == "stereo" and pts.info["matcher"] == "sgbm" and pts.info["instants"] == 3
     assert pts.info["static"] > 0.4 * 2 * 64 * 48
+
+
+def test_trainer_fuses_the_pair_once_for_init_and_depth_priors(demo_capture, monkeypatch):
+    """Init points (init=stereo) and the lambda_depth priors fuse the same frames: SGBM over
+    every instant runs once per run, not once per user."""
+    from engine.geometry import stereo
+    from engine.io.capture import load_capture
+    from engine.train import get_preset
+    from engine.train.trainer import Trainer
+
+    calls = []
+    real = stereo.capture_fusion
+    monkeypatch.setattr(stereo, "capture_fusion", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cfg = get_preset("fast", {"init": "stereo", "lambda_depth": 0.1, "iterations": 2, "init_max_points": 300})
+    tr = Trainer(load_capture(demo_capture), cfg, device="cpu", rgb_only=True)
+    tr.init_model()
+    assert tr.init_info["method"] == "stereo"
+    assert any("stereo_depth" in it for it in tr.items)
+    assert len(calls) == 1

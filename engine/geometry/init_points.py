@@ -33,7 +33,7 @@ from .planesweep import (
     stereo_depths,
     stereo_pair,
 )
-from .stereo import StereoUnavailable, backdrop_points, capture_fusion, fused_points
+from .stereo import FusionCache, StereoUnavailable, backdrop_points, capture_fusion, fused_points
 
 
 @dataclass
@@ -169,13 +169,16 @@ def _subsample(p: InitPoints, max_points: int, seed: int) -> InitPoints:
     return InitPoints(p.xyz[idx], p.rgb[idx], p.method, p.info)
 
 
-def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: float = 0.0):
+def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: float = 0.0,
+                fusion_cache: FusionCache | None = None):
     """Issue 14: OpenCV semi-global matching on every common RGB instant of the pair, fused per
     camera (:mod:`engine.geometry.stereo`): static depth + what moves at the first instant +
     interpolated hole fill every ``fill_stride`` px. Returns (InitPoints, backdrop InitPoints
     or None): with ``backdrop`` > 0, points beyond the image borders (a ring that wide, as a
-    fraction of the image) at extrapolated depth. Raises ``StereoUnavailable``."""
-    fa, fb, info = capture_fusion(capture, rgb_cameras(capture))  # raises StereoUnavailable
+    fraction of the image) at extrapolated depth. ``fusion_cache``: share the fusion with the
+    depth priors. Raises ``StereoUnavailable``."""
+    fuse = fusion_cache if fusion_cache is not None else (lambda cams: capture_fusion(capture, cams))
+    fa, fb, info = fuse(rgb_cameras(capture))  # raises StereoUnavailable
     xyz, rgb, counts = fused_points([fa, fb], instant=instant, fill=fill_depth if fill_stride > 0 else None,
                                     fill_stride=fill_stride)
     info = {**info, **counts, "points": int(len(xyz)), "matcher": "sgbm", "filled": counts["filled"]}
@@ -196,7 +199,8 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
 
 
 def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_random: int = 3000,
-                   seed: int = 0, min_points: int = 200, fill_stride: int = 3, backdrop: float = 0.0) -> InitPoints:
+                   seed: int = 0, min_points: int = 200, fill_stride: int = 3, backdrop: float = 0.0,
+                   fusion_cache: FusionCache | None = None) -> InitPoints:
     """The initial point cloud by ``method`` (auto | ply | stereo | planesweep | random).
 
     ``stereo`` is OpenCV SGBM fused over every RGB instant (:func:`sgbm_points`); when the
@@ -205,7 +209,8 @@ def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_r
     ``planesweep`` is the older NCC plane sweep at the first common instant. Stereo leaves
     holes (textureless areas, occlusions): with ``fill_stride`` > 0 they are filled with
     points at interpolated depths (:func:`fill_depth`), else with ``n_random / 4`` random
-    points in the stereo depth range.
+    points in the stereo depth range. ``fusion_cache`` (:class:`~engine.geometry.stereo.FusionCache`)
+    shares the SGBM fusion with the trainer's depth priors.
     """
     if method not in ("auto", "ply", "stereo", "planesweep", "random"):
         raise ValueError(f"unknown init method {method!r} (auto, ply, stereo, planesweep, random)")
@@ -222,7 +227,8 @@ def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_r
             if method == "planesweep":
                 result = stereo_points(capture, fill_stride=fill_stride)
             else:
-                result, back = sgbm_points(capture, fill_stride=fill_stride, backdrop=backdrop)
+                result, back = sgbm_points(capture, fill_stride=fill_stride, backdrop=backdrop,
+                                           fusion_cache=fusion_cache)
             if result is not None and len(result.xyz) - result.info.get("filled", 0) < min_points:
                 raise StereoUnavailable(f"stereo found only {len(result.xyz) - result.info.get('filled', 0)} "
                                         f"confident points (< {min_points})")

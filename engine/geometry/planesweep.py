@@ -210,27 +210,3 @@ def stereo_depths(img_a, view_a, img_b, view_b, *, num_planes: int = 64, radius:
         ok &= inside & (np.abs(other - z) <= lr_tolerance * z)
         out.append((d1.astype(np.float32), ok.reshape(d1.shape)))
     return out[0], out[1], (near, far)
-
-
-def stereo_depth_priors(capture, frames, **options) -> dict:
-    """Confident stereo depth for every train frame that has a partner camera at its time.
-
-    Returns {id(frame): (depth [H,W] float32, mask [H,W] bool)}.
-    """
-    cams = rgb_cameras(capture)
-    if len(cams) < 2:
-        return {}
-    a, b = cams[0], cams[1]
-    by_time: dict = {}
-    for f in frames:
-        if f.camera in (a, b):
-            by_time.setdefault(round(float(f.time), 6), {})[f.camera] = f
-    out = {}
-    for pair in by_time.values():
-        if a in pair and b in pair:
-            fa, fb = pair[a], pair[b]
-            (da, oka), (db, okb), _ = stereo_depths(fa.load_rgb(), capture.view(fa), fb.load_rgb(), capture.view(fb),
-                                                    **{**STEREO_DEFAULTS, **options})
-            out[id(fa)] = (da, oka)
-            out[id(fb)] = (db, okb)
-    return out

@@ -483,14 +483,38 @@ def backdrop_points(fused: FusedDepth, filled_depth: np.ndarray, fraction: float
     return xyz.astype(np.float32), col[v, u].astype(np.float32)
 
 
-def stereo_depth_priors(capture, frames, *, min_pixels: int = 16) -> dict:
+class FusionCache:
+    """:func:`capture_fusion` once per set of pair instants: the init points, the depth priors
+    and the flow carry fuse the same frames, and each fusion runs SGBM on every instant (2-4 s
+    on the demo). ``cache(cameras, frames=None)``; a StereoUnavailable is raised again."""
+
+    def __init__(self, capture):
+        self.capture = capture
+        self._done: dict = {}
+
+    def __call__(self, cameras: list[str], frames=None):
+        a, b, inst = pair_instants(self.capture, cameras, frames)  # cheap; raises StereoUnavailable
+        key = (a, b, tuple((t, id(fa), id(fb)) for t, fa, fb in inst))
+        if key not in self._done:
+            try:
+                self._done[key] = capture_fusion(self.capture, cameras, frames)
+            except StereoUnavailable as err:
+                self._done[key] = err
+        if isinstance(self._done[key], StereoUnavailable):
+            raise self._done[key]
+        return self._done[key]
+
+
+def stereo_depth_priors(capture, frames, *, min_pixels: int = 16, fusion_cache: FusionCache | None = None) -> dict:
     """Depth supervision of ``lambda_depth``: {id(frame): (depth [H,W] float32, mask [H,W] bool)}
     for the pair's frames with at least ``min_pixels`` known depths (:func:`fused_depth_priors`);
     ``{"_unavailable": message}`` when the cameras are not a usable pair."""
     from .planesweep import rgb_cameras
 
     try:
-        priors = fused_depth_priors(capture, frames, rgb_cameras(capture))
+        cams = rgb_cameras(capture)
+        fusion = fusion_cache(cams, frames) if fusion_cache is not None else None
+        priors = fused_depth_priors(capture, frames, cams, fusion=fusion)
     except StereoUnavailable as err:
         return {"_unavailable": str(err)}
     return {k: v for k, v in priors.items() if int(v[1].sum()) >= min_pixels}

@@ -110,7 +110,7 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
     ``knots[j]`` (``frames``: the train RGB frames); hidden Gaussians follow their nearest decided neighbour
     (``traj_carry_hidden`` x extent); later knots hold the result. Returns counts (run.json)."""
     if getattr(trainer, "_stereo_priors", None) is None:
-        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames)
+        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames, fusion_cache=trainer.fusion_cache)
     pri = trainer._stereo_priors
     g = trainer.model.gaussians
     with torch.no_grad():

@@ -39,7 +39,7 @@ import torch
 
 from ..errors import RunError
 from ..geometry.init_points import initial_points
-from ..geometry.stereo import stereo_depth_priors
+from ..geometry.stereo import FusionCache, stereo_depth_priors
 from ..scene.deformation import make_field
 from ..scene.gaussians import GaussianModel
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
@@ -104,6 +104,7 @@ class Trainer:
         self.capture = capture
         self.cfg = cfg
         self.device = torch.device(device)
+        self.fusion_cache = FusionCache(capture)  # one SGBM fusion for init points, depth priors, flow carry
         self.seed = int(seed)
         self.rgb_only = bool(rgb_only)
         self.total_steps = int(total_steps or cfg.iterations)
@@ -128,7 +129,7 @@ class Trainer:
             vt["synthetic"] = bool(getattr(f, "extra", {}).get("synthetic"))  # baseline frames
             self.items.append(vt)
         if cfg.lambda_depth > 0:  # issue 14: fused SGBM depth at every RGB instant
-            priors = stereo_depth_priors(capture, frames)
+            priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
             self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
             for f, it in zip(frames, self.items):
                 if id(f) in priors and priors[id(f)][1].sum() >= 16:
@@ -211,7 +212,8 @@ class Trainer:
         torch.manual_seed(self.seed)
         cfg = self.cfg
         pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
-                             seed=self.seed, fill_stride=cfg.init_fill_stride, backdrop=cfg.init_backdrop)
+                             seed=self.seed, fill_stride=cfg.init_fill_stride, backdrop=cfg.init_backdrop,
+                             fusion_cache=self.fusion_cache)
         self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
         if getattr(self, "depth_prior_note", None):
             self.init_info["depth_prior_unavailable"] = self.depth_prior_note
