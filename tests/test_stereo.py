@@ -197,14 +197,16 @@ def test_capture_stereo_init_covers_the_scene(small_capture):
 def test_trainer_fuses_the_pair_once_for_init_and_depth_priors(demo_capture, monkeypatch):
     """Init points (init=stereo) and the lambda_depth priors fuse the same frames: SGBM over
     every instant runs once per run, not once per user."""
-    from engine.geometry import stereo
+    from engine.geometry import depth_priors, init_points, stereo
     from engine.io.capture import load_capture
     from engine.train import get_preset
     from engine.train.trainer import Trainer
 
     calls = []
     real = stereo.capture_fusion
-    monkeypatch.setattr(stereo, "capture_fusion", lambda *a, **k: calls.append(1) or real(*a, **k))
+    counting = lambda *a, **k: calls.append(1) or real(*a, **k)  # noqa: E731
+    for module in (stereo, depth_priors, init_points):  # every name it is called by
+        monkeypatch.setattr(module, "capture_fusion", counting)
     cfg = get_preset("fast", {"init": "stereo", "lambda_depth": 0.1, "iterations": 2, "init_max_points": 300})
     tr = Trainer(load_capture(demo_capture), cfg, device="cpu", rgb_only=True)
     tr.init_model()

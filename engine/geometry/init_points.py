@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..io.points import load_points
+from .depth_priors import FusionCache
 from .planesweep import (
     STEREO_DEFAULTS,
     _backproject,
@@ -33,7 +34,7 @@ from .planesweep import (
     stereo_depths,
     stereo_pair,
 )
-from .stereo import FusionCache, StereoUnavailable, backdrop_points, capture_fusion, fused_points
+from .stereo import StereoUnavailable, backdrop_points, capture_fusion, fused_points
 
 
 @dataclass
@@ -209,7 +210,7 @@ def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_r
     ``planesweep`` is the older NCC plane sweep at the first common instant. Stereo leaves
     holes (textureless areas, occlusions): with ``fill_stride`` > 0 they are filled with
     points at interpolated depths (:func:`fill_depth`), else with ``n_random / 4`` random
-    points in the stereo depth range. ``fusion_cache`` (:class:`~engine.geometry.stereo.FusionCache`)
+    points in the stereo depth range. ``fusion_cache`` (:class:`~engine.geometry.depth_priors.FusionCache`)
     shares the SGBM fusion with the trainer's depth priors.
     """
     if method not in ("auto", "ply", "stereo", "planesweep", "random"):

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..cameras import View, project_points
-from ..geometry.stereo import stereo_depth_priors
+from ..geometry.depth_priors import stereo_depth_priors
 from ..scene.model import TRAJ_MEANS
 from .interpolation import lk_flow
 

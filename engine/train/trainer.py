@@ -38,8 +38,8 @@ import numpy as np
 import torch
 
 from ..errors import RunError
+from ..geometry.depth_priors import FusionCache, stereo_depth_priors
 from ..geometry.init_points import initial_points
-from ..geometry.stereo import FusionCache, stereo_depth_priors
 from ..scene.deformation import make_field
 from ..scene.gaussians import GaussianModel
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
