@@ -45,15 +45,17 @@ def _torch_side() -> SimpleNamespace:
         from ..engine.export import cached, ply
         from ..engine.export.render_views import write_renders
         from ..engine.scene.model import load_run
+        from ..engine.scene.observed import prune_unobserved
         from ..engine.train import train
     else:
         from engine.evaluate import evaluate
         from engine.export import cached, ply
         from engine.export.render_views import write_renders
         from engine.scene.model import load_run
+        from engine.scene.observed import prune_unobserved
         from engine.train import train
     return SimpleNamespace(evaluate=evaluate, load_run=load_run, train=train, write_renders=write_renders,
-                           cached=cached, ply=ply)
+                           cached=cached, ply=ply, prune_unobserved=prune_unobserved)
 
 
 def train(capture_path, run_dir, **kwargs) -> dict:
@@ -66,9 +68,15 @@ def evaluate(run_dir) -> dict:
     return _torch_side().evaluate(run_dir)
 
 
-def load_run(run_dir, device="cpu"):
-    """``engine.scene.model.load_run``: a run folder as a ``Scene4D`` (``sample``, ``render``)."""
-    return _torch_side().load_run(run_dir, device=device)
+def load_run(run_dir, device="cpu", prune_unobserved: bool = False):
+    """``engine.scene.model.load_run``: a run folder as a ``Scene4D`` (``sample``, ``render``);
+    ``prune_unobserved``: without the Gaussians no train camera constrained
+    (``engine.scene.observed.prune_unobserved``, against the capture the run recorded)."""
+    side = _torch_side()
+    scene4d = side.load_run(run_dir, device=device)
+    if prune_unobserved:
+        side.prune_unobserved(scene4d)
+    return scene4d
 
 
 def write_renders(scene4d, views, out_dir, fmt: str = "png", **kwargs) -> list:

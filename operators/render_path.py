@@ -10,7 +10,9 @@ motion render as keyed), and the engine's render-to-file (``write_renders``, thr
 with Blender's frame numbering (``#`` placeholders, or 4 digits appended), in the engine's
 conventions: EXR = linear RGBA (premultiplied) + Z, PNG = 8-bit sRGB (RGBA when
 ``film_transparent``, else RGB over black). The sequence is loaded back as an image
-datablock (source 'SEQUENCE').
+datablock (source 'SEQUENCE'). ``prune_unobserved`` ("Drop Unobserved Gaussians", off by
+default) renders without the Gaussians no train camera saw inside its image
+(``engine.scene.observed``, issue 14; README "Orbit around the demo").
 
 Interactive: a modal operator with a window-manager timer pumps the job (``Job.pump``); the
 renders run in a worker thread (no bpy there), ESC or ``bt4d.cancel_render_path`` stops
@@ -40,13 +42,14 @@ _EXT = {"OPEN_EXR": ".exr", "PNG": ".png"}
 _SCENE4D_CACHE: dict = {}
 
 
-def get_scene4d(run_dir: str):
-    """engine Scene4D for a run folder (cached while its checkpoint is unchanged)."""
+def get_scene4d(run_dir: str, prune_unobserved: bool = False):
+    """engine Scene4D for a run folder (cached while its checkpoint is unchanged), optionally
+    without the Gaussians no train camera constrained (issue 14)."""
     ck = Path(run_dir) / "checkpoint.pt"
-    key = (str(run_dir), ck.stat().st_mtime if ck.exists() else None)
+    key = (str(run_dir), ck.stat().st_mtime if ck.exists() else None, bool(prune_unobserved))
     if key not in _SCENE4D_CACHE:
         _SCENE4D_CACHE.clear()
-        _SCENE4D_CACHE[key] = engine_bridge.load_run(run_dir, device="cpu")
+        _SCENE4D_CACHE[key] = engine_bridge.load_run(run_dir, device="cpu", prune_unobserved=prune_unobserved)
     return _SCENE4D_CACHE[key]
 
 
@@ -121,6 +124,11 @@ class BT4D_OT_render_path(Operator):
                             description="Run folder to render (empty: the active / first result object's)")
     load_back: BoolProperty(name="Load Sequence", default=True,
                             description="Load the rendered frames as an image sequence")
+    prune_unobserved: BoolProperty(
+        name="Drop Unobserved Gaussians", default=False,
+        description="Leave out the Gaussians whose centre no train camera saw inside its image (held by a "
+                    "fringe only: speckled floaters at the sides of new viewpoints); the hole fill shows there "
+                    "instead. Needs the run's capture")
 
     _timer = None
     _job = None
@@ -141,7 +149,7 @@ class BT4D_OT_render_path(Operator):
         fmt = resolve_format(scene, self.file_format)
         views = collect_views(scene, None, obj, frames)
         outputs = [output_path(scene, f, fmt) for f in frames]
-        scene4d = get_scene4d(run_dir)
+        scene4d = get_scene4d(run_dir, self.prune_unobserved)
         transparent = bool(scene.render.film_transparent)
         return worker.Job(worker.render_views_job, kind=KIND, scene4d=scene4d, views=views, outputs=outputs,
                           file_format=fmt, transparent=transparent)

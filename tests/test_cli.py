@@ -131,3 +131,23 @@ def test_demo_command(demo_capture, tmp_path, capsys):
     assert metrics["n_frames"] == 61
     orbit = sorted((out / "orbit").glob("*.png"))
     assert len(orbit) == 4 and "orbit" in text
+
+
+@pytest.mark.slow
+def test_eval_prune_unobserved(run_dir, tmp_path, capsys):
+    """``eval --prune-unobserved``: scored without the Gaussians no train camera saw (issue 14),
+    recorded in the output; a compact cache is refused with a clear message."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    assert main(["eval", str(run), "--fill-holes", "--prune-unobserved", "2"]) == 0
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    pr = out["pruned_unobserved"]
+    assert pr["inset_px"] == 2.0 and pr["min_cameras"] == 1 and out["fill_holes"] is True
+    assert out["num_gaussians"] == pr["left"] and f"pruned {pr['pruned']} unobserved" in captured.err
+    assert main(["export", str(run), "--format", "compact", "--fps", "100", "--out", str(tmp_path / "c.bt4c")]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(tmp_path / "c.bt4c"), "--prune-unobserved"]) == 1
+    assert "needs a run folder" in capsys.readouterr().err

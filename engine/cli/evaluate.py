@@ -21,6 +21,7 @@ from ..export.cached import CachedScene, load_result
 from ..io.capture import load_capture
 from ..io.fileio import atomic_write
 from ..scene.model import load_run
+from ..scene.observed import DEFAULT_INSET_PX, prune_unobserved
 
 HELP = ("render every role:eval frame of the capture and print PSNR / SSIM / LPIPS as JSON "
         "(--per-camera: the novel-view table)")
@@ -33,6 +34,10 @@ def add_arguments(p) -> None:
     p.add_argument("--fill-holes", action="store_true",
                    help="score what a viewer of an opaque render sees: uncovered pixels filled from their "
                         "neighbourhood instead of the black background (issue 14)")
+    p.add_argument("--prune-unobserved", type=float, nargs="?", const=DEFAULT_INSET_PX, default=None, metavar="PX",
+                   help="drop the Gaussians whose centre no train camera saw at least PX pixels inside its image "
+                        f"(default {DEFAULT_INSET_PX:g}) before scoring: floaters at new viewpoints (issue 14; "
+                        "engine.scene.observed); run folders only")
     p.add_argument("--per-camera", action="store_true",
                    help="novel-view table per eval camera (needs ground-truth depth in the capture)")
     p.add_argument("--images", type=Path, default=None,
@@ -61,6 +66,16 @@ def _angle_labels(cap) -> dict:
     return out
 
 
+def maybe_prune(scene, capture, args) -> None:
+    """``--prune-unobserved``: drop what no train camera constrained (prints how many)."""
+    if args.prune_unobserved is None:
+        return
+    if isinstance(scene, CachedScene):
+        raise RunError(Path(args.run), "--prune-unobserved needs a run folder, not a compact cache")
+    n = prune_unobserved(scene, capture, inset_px=args.prune_unobserved)
+    print(f"pruned {n} unobserved Gaussians ({scene.num_gaussians} left)", file=sys.stderr)
+
+
 def per_camera(args) -> int:
     scene = load_run(args.run, device=args.device)
     cap_path = args.capture or scene.info.get("capture")
@@ -68,6 +83,7 @@ def per_camera(args) -> int:
         print(f"error: {Path(args.run) / 'run.json'}: no capture recorded; pass the capture path", file=sys.stderr)
         return 1
     cap = load_capture(cap_path)
+    maybe_prune(scene, cap, args)
     out = args.images or Path(args.run) / "novel_view"
     out.mkdir(parents=True, exist_ok=True)
     result = evaluate_novel_views(scene, cap, out, log=lambda m: print(m, file=sys.stderr, flush=True))
@@ -83,6 +99,7 @@ def main(args) -> int:
         if args.per_camera:
             return per_camera(args)
         scene = load_result(args.run, device=args.device)
+        maybe_prune(scene, args.capture, args)
         # a cache is a single file: its scores are printed, nothing is written beside it
         result = evaluate(args.run, args.capture, device=args.device, scene=scene,
                           write=not isinstance(scene, CachedScene), fill_holes=args.fill_holes)

@@ -112,6 +112,8 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         "run_dir": str(run_dir.resolve()),
         "capture": str(getattr(cap, "root", capture)),
     }
+    if info.get("pruned_unobserved"):  # scored after engine.scene.observed.prune_unobserved
+        result["pruned_unobserved"] = info["pruned_unobserved"]
     if write:
         buf = io.StringIO()
         w = csv.writer(buf)

@@ -254,6 +254,24 @@ class Scene4D:
     def background(self):
         return self.model.background
 
+    def prune(self, mask) -> int:
+        """Drop the Gaussians where the bool ``mask`` [N] is True (with their trajectories
+        and static / prior masks); the deformation field is per position and stays. In
+        memory only. Returns how many were dropped."""
+        m = self.model
+        mask = torch.as_tensor(np.asarray(mask, bool), device=m.gaussians.means.device)
+        if mask.shape != (self.num_gaussians,):
+            raise ValueError(f"prune mask of shape {tuple(mask.shape)} for {self.num_gaussians} Gaussians")
+        n = int(mask.sum())
+        if n:
+            keep = ~mask
+            for name in ("static_mask", "prior_mask"):
+                v = getattr(m, name)
+                if v is not None and v.shape[0] == mask.shape[0]:
+                    setattr(m, name, v[keep.to(v.device)])
+            m.gaussians.prune(mask)
+        return n
+
     def gaussians_at(self, t: float) -> dict:
         """Gaussians at capture time ``t`` as float32 numpy arrays.
 
