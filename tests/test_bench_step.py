@@ -37,3 +37,25 @@ def test_step_profile_charges_every_part_and_restores_the_patches(capture):
     assert np.isfinite(r["rgb_step_over_raster"]) and r["rgb_step_over_raster"] > 1.0
     md = bench_step.markdown(prof)
     assert "| field_bwd |" in md and "guided_deform" not in md
+
+
+def test_variants_profile_both_code_paths_in_one_process(capture, monkeypatch):
+    from engine.scene.deformation import HexPlane
+
+    seen = []
+    real = HexPlane.forward
+
+    def spy(self, xyzt):
+        seen.append(HexPlane.sampler)
+        return real(self, xyzt)
+
+    monkeypatch.setattr(HexPlane, "forward", spy)
+    profs, counts = bench_step.compare_runs(capture, 8, overrides={"init": "ply", "static_fraction": 0.25},
+                                            spike=False, variants=("reference", "current"))
+    assert set(profs) == {"reference", "current"} and HexPlane.sampler == "auto"  # restored
+    assert {"torch", "auto"} <= set(seen)
+    for prof in profs.values():
+        for clock in bench_step.CLOCKS:
+            tab = prof.table("rgb_deform", clock)
+            assert tab["steps"] == 5 and tab["ms"]["field_bwd"] > 0
+            assert sum(tab["ms"].values()) == pytest.approx(tab["step_ms"], rel=1e-6)

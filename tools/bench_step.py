@@ -19,14 +19,20 @@ and charges each step's *exclusive* wall time to its parts (:class:`StepProfiler
 Stages: ``static`` (RGB run), ``rgb_deform`` and ``guided_deform`` (the deformation stage
 of each run); the first step of each stage (set-up) is not timed. Prints a markdown table
 of per-step ms and shares and the issue's two ratios: RGB deformation step / rasterizer
-forward+backward, guided step / RGB step. CPU wall time: on a shared machine the shares
-are steadier than the milliseconds (the load average is printed).
+forward+backward, guided step / RGB step, on two clocks: wall time, and the process's CPU
+time over all its threads (steadier on a shared machine; the load average is printed).
+
+``--variants reference,current`` profiles the code paths of :data:`VARIANTS` in one
+process, runs interleaved (RGB runs of each, then guided runs), and prints each one's
+tables and the step speed-ups: before / after a change under the same load.
 """
 from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 
+import numpy as np
 import torch
 
 from engine.cli.train import parse_overrides
@@ -34,7 +40,7 @@ from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
 from engine.scene import model as scene_model
-from engine.scene.deformation import DeformationField
+from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
@@ -46,28 +52,42 @@ CATEGORIES = ("raster_fwd", "raster_bwd", "field_fwd", "fine_fwd", "field_bwd", 
               "densify", "other")
 
 
+CLOCKS = ("wall", "cpu")
+
+
+def _now() -> np.ndarray:
+    """(wall seconds, this process's CPU seconds over all its threads)."""
+    return np.array((time.perf_counter(), time.process_time()))
+
+
 class StepProfiler:
+    """Exclusive per-part times of each step on two clocks: wall time and the process's
+    CPU time (all threads: the rasterizer's and the HexPlane sampler's numba kernels run
+    on 2 threads, torch on 1). On a machine shared with other jobs the CPU times are the
+    steadier ones; each table says which clock it shows."""
+
     def __init__(self):
         self.by_label: dict[str, dict] = {}
-        self.totals = {c: 0.0 for c in CATEGORIES}  # the accumulator in use (scratch outside run_step)
-        self._bwd_charged = 0.0
-        self._in_window = 0.0
+        self.totals = {c: np.zeros(2) for c in CATEGORIES}  # the accumulator in use (scratch outside run_step)
+        self._bwd_charged = np.zeros(2)
+        self._in_window = np.zeros(2)
         self._stack: list[list] = []  # [category, start, child seconds]
         self._patches: list[tuple] = []
         self._field_bwd_start = None
 
     def _acc(self, label):
         if label not in self.by_label:
-            self.by_label[label] = {"totals": {c: 0.0 for c in CATEGORIES}, "steps": 0, "seconds": 0.0}
+            self.by_label[label] = {"totals": {c: np.zeros(2) for c in CATEGORIES}, "steps": 0,
+                                    "seconds": np.zeros(2)}
         return self.by_label[label]
 
     # ---- exclusive timers ---------------------------------------------------------------
     def _enter(self, cat):
-        self._stack.append([cat, time.perf_counter(), 0.0])
+        self._stack.append([cat, _now(), np.zeros(2)])
 
     def _exit(self):
         cat, t0, child = self._stack.pop()
-        dt = time.perf_counter() - t0
+        dt = _now() - t0
         self.totals[cat] += dt - child
         if self._field_bwd_start is not None:  # charged already: not the field's backward
             self._in_window += dt - child
@@ -101,14 +121,14 @@ class StepProfiler:
 
         def started(_g):
             if prof._field_bwd_start is None:
-                prof._field_bwd_start = time.perf_counter()
-                prof._in_window = 0.0
+                prof._field_bwd_start = _now()
+                prof._in_window = np.zeros(2)
 
         def done(_grads):
             if prof._field_bwd_start is not None:
                 # less what ran meanwhile and is charged elsewhere (the spike branch's second
                 # render's rasterizer backward runs inside this window)
-                dt = time.perf_counter() - prof._field_bwd_start - prof._in_window
+                dt = _now() - prof._field_bwd_start - prof._in_window
                 prof.totals["field_bwd"] += dt
                 prof._bwd_charged += dt
                 prof._field_bwd_start = None
@@ -172,7 +192,7 @@ class StepProfiler:
 
                 timed._bt4d_timed = True
                 term.fn = timed
-        self._bwd_charged = 0.0
+        self._bwd_charged = np.zeros(2)
         self._field_bwd_start = None
         self._enter("other")
         out = trainer.step(step)
@@ -181,15 +201,17 @@ class StepProfiler:
         self.totals["other"] -= self._bwd_charged
         acc["steps"] += 1
         acc["seconds"] += dt
-        self.totals = {c: 0.0 for c in CATEGORIES}  # untimed steps charge nothing
+        self.totals = {c: np.zeros(2) for c in CATEGORIES}  # untimed steps charge nothing
         return out
 
-    def table(self, label: str) -> dict:
-        """Per-step milliseconds of each category and their shares of the step."""
+    def table(self, label: str, clock: str = "wall") -> dict:
+        """Per-step milliseconds of each category and their shares of the step, on
+        ``clock`` (wall | cpu)."""
         acc = self._acc(label)
         n = max(1, acc["steps"])
-        ms = {c: 1e3 * v / n for c, v in acc["totals"].items()}
-        step_ms = 1e3 * acc["seconds"] / n
+        k = CLOCKS.index(clock)
+        ms = {c: 1e3 * float(v[k]) / n for c, v in acc["totals"].items()}
+        step_ms = 1e3 * float(acc["seconds"][k]) / n
         return {"steps": acc["steps"], "step_ms": step_ms, "ms": ms,
                 "share": {c: (v / step_ms if step_ms else 0.0) for c, v in ms.items()}}
 
@@ -210,39 +232,81 @@ def add_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=60, help="schedule length of each profiled run (default 60)")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
+    parser.add_argument("--variants", default="current",
+                        help="comma-separated code paths profiled in this one process, runs interleaved: "
+                             + ", ".join(f"{k} ({v['doc']})" for k, v in VARIANTS.items()) + " (default current)")
+
+
+# Issue 13's speed-ups that bench-step can switch off, to measure before / after in one
+# process (a shared machine's load changes between processes).
+VARIANTS = {
+    "current": {"doc": "the engine as it is", "hexplane_sampler": "auto"},
+    "reference": {"doc": "HexPlane sampled by grid_sample, as before the fused sampler",
+                  "hexplane_sampler": "torch"},
+}
+
+
+@contextmanager
+def variant(name: str):
+    """Switch the engine to code path ``name`` of :data:`VARIANTS` for the block."""
+    spec = VARIANTS[name]
+    old = HexPlane.sampler
+    HexPlane.sampler = spec["hexplane_sampler"]
+    try:
+        yield
+    finally:
+        HexPlane.sampler = old
+
+
+def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only: bool,
+                 prof: "StepProfiler") -> int:
+    """One profiled run (RGB only or guided) into ``prof``; returns its final Gaussian count."""
+    cfg = get_preset(preset, {**(overrides or {}), "iterations": int(steps)})
+    tr = Trainer(cap, cfg, device="cpu", rgb_only=rgb_only)
+    tr.init_model()
+    deform = "rgb_deform" if rgb_only else "guided_deform"
+    with prof:
+        for i in range(int(steps)):
+            stage = tr.stage_of(i)
+            if i in (0, tr.static_steps) or (stage == "static" and not rgb_only):
+                tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
+                continue
+            prof.run_step(tr, i, "static" if stage == "static" else deform)
+    return tr.model.gaussians.num_gaussians
+
+
+def compare_runs(capture, steps: int, preset: str = "fast", overrides: dict | None = None,
+                 spike: bool = True, variants=("current",)) -> tuple[dict, dict]:
+    """Profile an RGB-only run (and, with ``spike``, a guided run) of ``steps`` steps for
+    each code path of ``variants`` (:data:`VARIANTS`), interleaved: RGB runs of every
+    variant, then guided runs. Returns ({variant: StepProfiler}, {variant: Gaussian counts})."""
+    cap = load_capture(capture) if not hasattr(capture, "frames") else capture
+    warm_up_runtime("cpu")
+    profs = {v: StepProfiler() for v in variants}
+    counts: dict = {v: {} for v in variants}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as engine.train.train does on the CPU
+    try:
+        for rgb_only in ((True, False) if spike else (True,)):
+            for v in variants:
+                with variant(v):
+                    n = _profile_run(cap, steps, preset, overrides, rgb_only, profs[v])
+                counts[v]["rgb_deform" if rgb_only else "guided_deform"] = n
+    finally:
+        torch.set_num_threads(threads)
+    return profs, counts
 
 
 def profile_runs(capture, steps: int, preset: str = "fast", overrides: dict | None = None,
                  spike: bool = True) -> tuple["StepProfiler", dict]:
     """Profile an RGB-only run (and, with ``spike``, a guided run) of ``steps`` steps.
     Returns the profiler (labels static / rgb_deform / guided_deform) and Gaussian counts."""
-    cap = load_capture(capture) if not hasattr(capture, "frames") else capture
-    warm_up_runtime("cpu")
-    prof = StepProfiler()
-    counts = {}
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # as engine.train.train does on the CPU
-    try:
-        for rgb_only in ((True, False) if spike else (True,)):
-            cfg = get_preset(preset, {**(overrides or {}), "iterations": int(steps)})
-            tr = Trainer(cap, cfg, device="cpu", rgb_only=rgb_only)
-            tr.init_model()
-            deform = "rgb_deform" if rgb_only else "guided_deform"
-            with prof:
-                for i in range(int(steps)):
-                    stage = tr.stage_of(i)
-                    if i in (0, tr.static_steps) or (stage == "static" and not rgb_only):
-                        tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
-                        continue
-                    prof.run_step(tr, i, "static" if stage == "static" else deform)
-            counts[deform] = tr.model.gaussians.num_gaussians
-    finally:
-        torch.set_num_threads(threads)
-    return prof, counts
+    profs, counts = compare_runs(capture, steps, preset, overrides, spike)
+    return profs["current"], counts["current"]
 
 
-def ratios(prof: "StepProfiler") -> dict:
-    rgb, guided = prof.table("rgb_deform"), prof.table("guided_deform")
+def ratios(prof: "StepProfiler", clock: str = "wall") -> dict:
+    rgb, guided = prof.table("rgb_deform", clock), prof.table("guided_deform", clock)
     raster = rgb["ms"]["raster_fwd"] + rgb["ms"]["raster_bwd"]
     out = {"rgb_step_over_raster": rgb["step_ms"] / raster if raster else float("nan")}
     if guided["steps"]:
@@ -250,11 +314,12 @@ def ratios(prof: "StepProfiler") -> dict:
     return out
 
 
-def markdown(prof: "StepProfiler") -> str:
+def markdown(prof: "StepProfiler", clock: str = "wall") -> str:
     labels = [lb for lb in ("static", "rgb_deform", "guided_deform") if prof.table(lb)["steps"]]
-    tabs = {lb: prof.table(lb) for lb in labels}
+    tabs = {lb: prof.table(lb, clock) for lb in labels}
     steps = " | ".join(f"{tabs[lb]['step_ms']:.1f} ({tabs[lb]['steps']} steps)" for lb in labels)
-    lines = ["| part | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels), f"| step ms | {steps} |"]
+    lines = [f"| part ({clock} ms) | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels),
+             f"| step ms | {steps} |"]
     for c in CATEGORIES:
         lines.append(f"| {c} | " + " | ".join(f"{tabs[lb]['ms'][c]:.1f} ({100 * tabs[lb]['share'][c]:.0f}%)"
                                              for lb in labels) + " |")
@@ -262,16 +327,37 @@ def markdown(prof: "StepProfiler") -> str:
 
 
 def main(args) -> int:
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown or not variants:
+        raise SystemExit(f"bench-step: unknown variant(s) {unknown}; choose from {', '.join(VARIANTS)}")
     load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     t0 = time.perf_counter()
-    prof, counts = profile_runs(args.capture, args.steps, args.preset, parse_overrides(args.set))
+    profs, counts = compare_runs(args.capture, args.steps, args.preset, parse_overrides(args.set),
+                                 variants=variants)
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(markdown(prof))
-    r = ratios(prof)
-    print()
-    print(f"RGB deformation step / rasterizer fwd+bwd: {r['rgb_step_over_raster']:.2f}x (target <= 1.6x)")
-    if "guided_step_over_rgb_step" in r:
-        print(f"guided step / RGB step: {r['guided_step_over_rgb_step']:.2f}x (target <= 1.6x)")
-    print(f"Gaussians at the end: {counts}; {time.perf_counter() - t0:.0f} s; "
-          f"load average start/end {load0:.1f} / {load1:.1f} (cores: {os.cpu_count()})")
+    for v in variants:
+        prof = profs[v]
+        for clock in CLOCKS:
+            print(f"### {v} ({VARIANTS[v]['doc']}), {clock} time\n")
+            print(markdown(prof, clock))
+            r = ratios(prof, clock)
+            print()
+            print(f"RGB deformation step / rasterizer fwd+bwd: {r['rgb_step_over_raster']:.2f}x (target <= 1.6x)")
+            if "guided_step_over_rgb_step" in r:
+                print(f"guided step / RGB step: {r['guided_step_over_rgb_step']:.2f}x (target <= 1.6x)")
+            print()
+        print(f"Gaussians at the end ({v}): {counts[v]}")
+    if len(variants) > 1:
+        base = profs[variants[0]]
+        for v in variants[1:]:
+            for clock in CLOCKS:
+                parts = []
+                for lb in ("rgb_deform", "guided_deform"):
+                    a, b = base.table(lb, clock), profs[v].table(lb, clock)
+                    if a["steps"] and b["steps"]:
+                        parts.append(f"{lb} {a['step_ms'] / b['step_ms']:.2f}x")
+                print(f"step speed-up of {v} over {variants[0]} ({clock}): " + ", ".join(parts))
+    print(f"{time.perf_counter() - t0:.0f} s; load average start/end {load0:.1f} / {load1:.1f} "
+          f"(cores: {os.cpu_count()})")
     return 0

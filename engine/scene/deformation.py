@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..spike.features import SpikeWindowCache
+from . import hexplane_fused
 from .fine_deformation import SpikeFineEncoder
 
 # (a, b) coordinate indices of the six planes; 3 is time.
@@ -66,8 +67,19 @@ class HexPlane(nn.Module):
         src = self.spatial[level] if index < 3 else self.temporal[level]
         return src[index % 3: index % 3 + 1]
 
+    # "auto": the fused numba sampler (engine.scene.hexplane_fused) for CPU tensors when
+    # numba is available, else ``grid_sample``; "torch": always ``grid_sample`` (the
+    # reference the fused path is tested against); "fused": the fused one where it can run.
+    sampler = "auto"
+
     def forward(self, xyzt: torch.Tensor) -> torch.Tensor:
         """``xyzt`` [N, 4] in [-1, 1] -> [N, out_dim]."""
+        if self.sampler != "torch" and hexplane_fused.supports(xyzt, [*self.spatial, *self.temporal]):
+            return hexplane_fused.hexplane_sample(xyzt, self.spatial, self.temporal)
+        return self.reference(xyzt)
+
+    def reference(self, xyzt: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` by ``F.grid_sample`` (two batched calls per level)."""
         n = xyzt.shape[0]
         gs = torch.stack([xyzt[:, PLANES[i]] for i in SPATIAL]).reshape(3, 1, n, 2)
         gt = torch.stack([xyzt[:, PLANES[i]] for i in TEMPORAL]).reshape(3, 1, n, 2)
