@@ -95,7 +95,9 @@ class TrainConfig:
     lambda_depth_smooth: float = 0.0  # edge-aware smoothness of the rendered depth (measured: 0.05)
     opacity_decay: float = 1.0        # x opacity of the Gaussians a step sees (Binocular3DGS: 0.995); 1 = off
     random_background: bool = False   # random background per step (with init_backdrop 0.3: demo -1.7 dB, off)
-    init_backdrop: float = 0.0        # extend the fused stereo beyond each image border by this fraction
+    init_backdrop: float = 0.0        # points beyond each image border (this fraction wide) on the dominant planes
+    init_planes: bool = False         # stereo holes take the dominant planes' depth where it agrees (geometry.planes)
+    backdrop_opacity: float = 0.0     # opacity of the init_backdrop Gaussians at step 0 (no view trains them); 0: off
 
     # ---- bookkeeping ------------------------------------------------------------------
     checkpoint_every_s: float = 30.0

@@ -213,7 +213,7 @@ class Trainer:
         cfg = self.cfg
         pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
                              seed=self.seed, fill_stride=cfg.init_fill_stride, backdrop=cfg.init_backdrop,
-                             fusion_cache=self.fusion_cache)
+                             fusion_cache=self.fusion_cache, planes=cfg.init_planes)
         self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
         if getattr(self, "depth_prior_note", None):
             self.init_info["depth_prior_unavailable"] = self.depth_prior_note
