@@ -208,3 +208,24 @@ def test_initial_points_with_planes_and_backdrop(demo_capture):
     back = p.xyz[-p.info["backdrop"]:].astype(np.float64)
     dist = np.min([np.abs(back @ np.asarray(q["normal"]) + q["offset"]) for q in p.info["planes"]], axis=0)
     assert np.median(dist) < 1e-3
+
+
+def test_depth_prior_adds_the_plane_where_stereo_is_empty_and_agrees():
+    from engine.geometry.depth_priors import plane_prior
+
+    view = _camera()
+    vv, uu = np.mgrid[0:H, 0:W] + 0.5
+    truth = _analytic_depth(view, uu, vv)
+    planes = fit_planes(_room(), 0.01)
+    ok = np.ones((H, W), bool)
+    ok[50:66, 10:40] = False                       # floor stereo missed: the plane fills it
+    ok[5:15, 60:70] = False                        # empty in front of an object 40 % nearer
+    depth = np.where(ok, truth, 0.0).astype(np.float32)
+    depth[:, 55:75] = np.where(ok[:, 55:75], truth[:, 55:75], 0.0) * np.where(
+        (np.arange(H)[:, None] >= 3) & (np.arange(H)[:, None] < 17), 0.6, 1.0)
+    d, m = plane_prior(view, depth, ok, planes)
+    assert m[50:66, 10:40].all()
+    added = m & ~ok
+    assert np.allclose(d[added], truth[added], rtol=0.005)
+    assert not m[5:15, 60:70].any()                # the plane disagrees with the object around it
+    assert np.array_equal(d[ok], depth[ok])

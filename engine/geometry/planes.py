@@ -163,3 +163,27 @@ def static_planes(fused: list, *, rel_threshold: float = 0.01, **options) -> lis
     if not pts:
         return []
     return fit_planes(np.concatenate(pts), rel_threshold * float(np.median(np.concatenate(depths))), **options)
+
+
+def nearest_known_on_plane(view, depth: np.ndarray, ok: np.ndarray, planes: list[Plane], *,
+                           rel_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """(plane depth [H, W], mask [H, W]): the pixels without stereo (``~ok``) whose nearest pixel
+    with stereo lies on the planes (its depth within ``rel_tol`` of the plane depth there) -- a
+    gap in a matched floor, not a hole in an object in front of it. Unlike :func:`plane_fill`,
+    nothing is interpolated: a slanted floor's depth changes by several % per row near the
+    camera, which an interpolation across a gap does not follow."""
+    k = view.intrinsics
+    v, u = np.mgrid[0:k.height, 0:k.width].astype(np.float64)
+    pd = ray_plane_depth(view, planes, u + 0.5, v + 0.5)
+    if not planes or ok.all() or not ok.any():
+        return pd, np.zeros_like(ok)
+    with np.errstate(invalid="ignore"):
+        inlier = ok & np.isfinite(pd) & (np.abs(depth - pd) <= rel_tol * pd)
+    # nearest known pixel of every pixel: labels of cv2's distance transform index the zero
+    # (known) pixels in row-major order
+    _, labels = cv2.distanceTransformWithLabels((~ok).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    flat = np.flatnonzero(ok.ravel())
+    nearest = flat[np.clip(labels.ravel() - 1, 0, len(flat) - 1)].reshape(ok.shape)
+    mask = ~ok & np.isfinite(pd) & inlier.ravel()[nearest]
+    return pd, mask

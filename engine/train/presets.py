@@ -85,6 +85,7 @@ class TrainConfig:
     lambda_block: float = 0.5         # L1 of 4x4 average-pooled images (paper Eq. 20 block loss)
     block_size: int = 4
     lambda_depth: float = 0.1         # relative L1 to fused SGBM stereo depth at every RGB instant (issue 14)
+    depth_prior_planes: bool = False  # lambda_depth also where stereo is empty, on the dominant planes
     background: tuple = (0.0, 0.0, 0.0)
 
     # ---- two-view geometry (issue 14, engine.train.geometry_losses; README "Two-view geometry") ----
