@@ -13,7 +13,8 @@ Pipeline, per RGB instant where both cameras have a frame:
 2. :func:`match_rectified` -- semi-global matching (``cv2.StereoSGBM``, Hirschmueller 2008) in
    both directions (the right-to-left pass matches the mirrored images), a left-right
    consistency check, SGBM's parabolic sub-pixel disparity (1/16 px), speckle filtering
-   (``cv2.filterSpeckles``) and a per-pixel confidence in [0, 1] (agreement of the two
+   (``cv2.filterSpeckles``), the half-occluded band beside foreground edges removed
+   (:mod:`.stereo_filters`) and a per-pixel confidence in [0, 1] (agreement of the two
    directions times a soft texture term).
 3. :func:`pair_depths` -- the disparities mapped back to planar depth (metres along each
    original camera's axis) at every pixel of both original views.
@@ -44,6 +45,10 @@ class StereoUnavailable(ValueError):
 
 # SGBM settings; the block size and penalties follow OpenCV's stereo_match sample
 # (P1 = 8 cn b^2, P2 = 32 cn b^2), LR tolerance 1 px (disp12MaxDiff's usual value).
+# Outlier removal (README, Two-view geometry; novel scene, fused over 7 instants: p90 depth
+# error 24.6 -> 8.8 %, pixels off by > 5 % 29 -> 15 %; demo p90 4.9 -> 2.9 %): replicate_border
+# (rectified margin = nearest border pixel, validity eroded by half a block), occlusion_margin
+# (stereo_filters.half_occlusion_band, px; -1 off), clip_far (no depth beyond the rig's range).
 SGBM_DEFAULTS = dict(block_size=5, uniqueness=5, speckle_window=60, speckle_range=2, lr_tolerance=1.0,
                      max_disparity_frac=0.5, replicate_border=True, occlusion_margin=3, clip_far=True)
 
@@ -165,6 +170,8 @@ def match_rectified(left: np.ndarray, right: np.ndarray, num_disparities: int, *
     both directions; a pixel is kept when the right image's disparity at ``x - d`` agrees
     within ``lr_tolerance`` px and its speckle region is larger than ``speckle_window``.
     ``valid_*`` (bool, optional): pixels that come from inside the original image.
+    ``occlusion_margin`` >= 0 removes the half-occluded band SGBM fattens the foreground into
+    (:func:`~.stereo_filters.half_occlusion_band`, jumps above ``edge_jump`` of the disparity).
     """
     nd = max(16, int(np.ceil(num_disparities / 16.0)) * 16)
     cn = 1
