@@ -8,6 +8,8 @@ on the stride-2 grid). Prints, for the first train camera: the share of GT pixel
 stereo depth (coverage) and the median / 90th percentile relative depth error, for the
 OpenCV SGBM depth of one instant, the SGBM depth fused over every instant
 (``FusedDepth.instant_depth``), and the older NCC plane sweep (its confident pixels).
+``--no-outlier-removal`` runs SGBM as before the half-occlusion / margin / depth-range
+filters (README, Two-view geometry) for comparison.
 """
 from __future__ import annotations
 
@@ -51,7 +53,12 @@ def score(name, depth, gt):
           f"p90 {np.percentile(e, 90):.4f}")
 
 
-def main(capture):
+# the SGBM options of the pipeline before outlier removal (README: "before" rows)
+NO_OUTLIER_REMOVAL = dict(replicate_border=False, occlusion_margin=-1, clip_far=False)
+
+
+def main(capture, options=None):
+    options = options or {}
     cap = load_capture(capture)
     cams = rgb_cameras(cap)
     files = depth_files(cap)
@@ -62,7 +69,7 @@ def main(capture):
         gts = [pointmap_depth(cap, fa[0])] + [None] * (len(fa) - 1)
         print("ground truth: points.ply pointmap at t = 0 (stride 2)")
     t0 = time.perf_counter()
-    fused_a, _fb, info = capture_fusion(cap, cams)
+    fused_a, _fb, info = capture_fusion(cap, cams, **options)
     print(f"SGBM + fusion over {info['instants']} instants: {time.perf_counter() - t0:.1f} s")
     for i, gt in enumerate(gts):
         if gt is None:
@@ -82,4 +89,7 @@ def main(capture):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    if len(args) != 1:
+        sys.exit("usage: stereo_eval.py CAPTURE [--no-outlier-removal]")
+    main(args[0], NO_OUTLIER_REMOVAL if "--no-outlier-removal" in sys.argv else None)

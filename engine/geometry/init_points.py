@@ -23,6 +23,7 @@ import numpy as np
 
 from ..io.points import load_points
 from .depth_priors import FusionCache
+from .planes import plane_backdrop_points, static_planes
 from .planesweep import (
     STEREO_DEFAULTS,
     _backproject,
@@ -171,27 +172,36 @@ def _subsample(p: InitPoints, max_points: int, seed: int) -> InitPoints:
 
 
 def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: float = 0.0,
-                fusion_cache: FusionCache | None = None):
+                fusion_cache: FusionCache | None = None, planes: bool = False):
     """Issue 14: OpenCV semi-global matching on every common RGB instant of the pair, fused per
     camera (:mod:`engine.geometry.stereo`): static depth + what moves at the first instant +
     interpolated hole fill every ``fill_stride`` px. Returns (InitPoints, backdrop InitPoints
     or None): with ``backdrop`` > 0, points beyond the image borders (a ring that wide, as a
-    fraction of the image) at extrapolated depth. ``fusion_cache``: share the fusion with the
-    depth priors. Raises ``StereoUnavailable``."""
+    fraction of the image) on the static cloud's dominant planes (:mod:`engine.geometry.planes`;
+    where a ray meets none, or no plane was found, the depth continued linearly from the border).
+    ``planes``: the hole fill too takes the plane depth where it agrees with the interpolation.
+    ``fusion_cache``: share the fusion with the depth priors. Raises ``StereoUnavailable``."""
     fuse = fusion_cache if fusion_cache is not None else (lambda cams: capture_fusion(capture, cams))
     fa, fb, info = fuse(rgb_cameras(capture))  # raises StereoUnavailable
+    found = static_planes([fa, fb]) if planes or backdrop > 0 else []
     xyz, rgb, counts = fused_points([fa, fb], instant=instant, fill=fill_depth if fill_stride > 0 else None,
-                                    fill_stride=fill_stride)
+                                    fill_stride=fill_stride, planes=found if planes else None)
     info = {**info, **counts, "points": int(len(xyz)), "matcher": "sgbm", "filled": counts["filled"]}
+    if found:
+        info["planes"] = [{"normal": [round(float(x), 4) for x in p.normal], "offset": round(p.offset, 4),
+                           "inliers": p.inliers} for p in found]
     if len(xyz):
         dep = _project(fa.view, xyz)[1]
         info["depth_p5_p95"] = [float(np.percentile(dep, 5)), float(np.percentile(dep, 95))]
     back = None
     if backdrop > 0:
         parts = []
+        far = 3.0 * float(info["depth_p5_p95"][1]) if "depth_p5_p95" in info else np.inf
         for f in (fa, fb):
             ok = np.isfinite(f.static_depth)
-            if ok.any():
+            if found:
+                parts.append(plane_backdrop_points(f.view, np.median(f.images, axis=0), found, backdrop, max_depth=far))
+            elif ok.any():
                 parts.append(backdrop_points(f, fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok),
                                              backdrop))
         if parts:
@@ -201,7 +211,7 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
 
 def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_random: int = 3000,
                    seed: int = 0, min_points: int = 200, fill_stride: int = 3, backdrop: float = 0.0,
-                   fusion_cache: FusionCache | None = None) -> InitPoints:
+                   fusion_cache: FusionCache | None = None, planes: bool = False) -> InitPoints:
     """The initial point cloud by ``method`` (auto | ply | stereo | planesweep | random).
 
     ``stereo`` is OpenCV SGBM fused over every RGB instant (:func:`sgbm_points`); when the
@@ -229,7 +239,7 @@ def initial_points(capture, method: str = "auto", *, max_points: int = 6000, n_r
                 result = stereo_points(capture, fill_stride=fill_stride)
             else:
                 result, back = sgbm_points(capture, fill_stride=fill_stride, backdrop=backdrop,
-                                           fusion_cache=fusion_cache)
+                                           fusion_cache=fusion_cache, planes=planes)
             if result is not None and len(result.xyz) - result.info.get("filled", 0) < min_points:
                 raise StereoUnavailable(f"stereo found only {len(result.xyz) - result.info.get('filled', 0)} "
                                         f"confident points (< {min_points})")

@@ -154,9 +154,31 @@ def _opacity_decay_hook(factor: float):
     return hook
 
 
+def set_tail_opacity(opacity_logits: torch.Tensor, count: int, opacity: float) -> None:
+    """In place: the last ``count`` Gaussians (logits [N] or [N,1]) get ``opacity``."""
+    if count > 0:
+        with torch.no_grad():
+            opacity_logits[-count:] = float(torch.logit(torch.tensor(min(max(opacity, 1e-4), 1 - 1e-4))))
+
+
+def _backdrop_opacity_hook(opacity: float):
+    """The ``init_backdrop`` Gaussians (appended last to the initial cloud, run.json
+    ``init.backdrop``) lie beyond every train camera's image, so no step trains their opacity;
+    at ``init_opacity`` (0.1) a viewer 20-30 deg off sees through them (alpha < 0.5). Set once,
+    after the first step (before any densification reorders the Gaussians)."""
+    def hook(trainer, step: int, item: dict, meta: dict) -> None:
+        info = getattr(trainer, "init_info", {}) or {}
+        g = trainer.model.gaussians
+        if step == 0 and info.get("backdrop") and g.num_gaussians == info.get("num_points"):
+            set_tail_opacity(g.opacity_logits.data, int(info["backdrop"]), opacity)
+    return hook
+
+
 def geometry_post_step_hooks(cfg) -> list:
     """Hooks ``(trainer, step, item, meta)`` run after each optimiser step."""
     hooks = []
+    if getattr(cfg, "init_backdrop", 0.0) > 0 and getattr(cfg, "backdrop_opacity", 0.0) > 0:
+        hooks.append(_backdrop_opacity_hook(cfg.backdrop_opacity))
     if 0.0 < getattr(cfg, "opacity_decay", 1.0) < 1.0:
         hooks.append(_opacity_decay_hook(cfg.opacity_decay))
     return hooks

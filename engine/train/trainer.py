@@ -129,7 +129,8 @@ class Trainer:
             vt["synthetic"] = bool(getattr(f, "extra", {}).get("synthetic"))  # baseline frames
             self.items.append(vt)
         if cfg.lambda_depth > 0:  # issue 14: fused SGBM depth at every RGB instant
-            priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
+            priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache,
+                                         planes=cfg.depth_prior_planes)
             self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
             for f, it in zip(frames, self.items):
                 if id(f) in priors and priors[id(f)][1].sum() >= 16:
@@ -213,7 +214,7 @@ class Trainer:
         cfg = self.cfg
         pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
                              seed=self.seed, fill_stride=cfg.init_fill_stride, backdrop=cfg.init_backdrop,
-                             fusion_cache=self.fusion_cache)
+                             fusion_cache=self.fusion_cache, planes=cfg.init_planes)
         self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
         if getattr(self, "depth_prior_note", None):
             self.init_info["depth_prior_unavailable"] = self.depth_prior_note
