@@ -87,13 +87,16 @@ def along_ray_loss(x_t: torch.Tensor, center: torch.Tensor, target: torch.Tensor
     return F.smooth_l1_loss(r, torch.zeros_like(r), beta=float(beta))
 
 
-def motion_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:
+def motion_positions(model: Model4D, t: float, idx: torch.Tensor, static: torch.Tensor | None | str = "model"
+                     ) -> torch.Tensor:
     """Positions [M, 3] of the Gaussians ``idx`` [M] at capture time ``t``, with the canonical
     attributes detached (only the motion -- trajectories and / or deformation field -- keeps
-    a gradient), as :meth:`Model4D.attributes` computes them (static rows do not move)."""
+    a gradient), as :meth:`Model4D.attributes` computes them (static rows do not move).
+    ``static``: bool [N] of the static rows (default: the model's, recomputed)."""
     g = model.gaussians
     means, quats = g.means.detach()[idx], g.quats.detach()[idx]
-    static = model.effective_static_mask()
+    if isinstance(static, str):
+        static = model.effective_static_mask()
     moving = None if static is None else ~static[idx]
     if model.use_deformation and model.trajectory is not None:
         knots = model.trajectory["knots"]
@@ -178,9 +181,9 @@ class AlongRayPrior:
         curve = self.cfg.along_ray_curve
         keys = ("a", "b") if curve == "linear" else tuple(times)
         with torch.no_grad():
-            depths = {k: ray_depth(motion_positions(model, times[k], idx), c) for k in keys}
+            depths = {k: ray_depth(motion_positions(model, times[k], idx, static), c) for k in keys}
         target = along_ray_target({k: times[k] for k in keys}, depths, t, curve)
-        x_t = motion_positions(model, t, idx)
+        x_t = motion_positions(model, t, idx, static)
         extent = max(float(tr.extent), 1e-9)
         loss = along_ray_loss(x_t, c, target, extent, float(self.cfg.along_ray_beta))
         with torch.no_grad():
