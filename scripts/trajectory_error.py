@@ -16,6 +16,12 @@ each RGB interval) its error is ``e = x(t) - M(t) p``. ``e`` is split at the spi
 along its viewing ray through ``M(t) p`` (``ray_mm``) and across it (``plane_mm``), and the
 across part in spike pixels (``plane_px``: distance between the two projections). Prints
 per run and object the mean of each (Gaussians weighted by opacity) and the counts.
+
+Also ``wobble_mm``: how far the distance from the spike camera ``rho = |x - c|`` of each such
+Gaussian departs between frames from the cubic Hermite curve (Catmull-Rom tangents) through
+its own ``rho`` at the RGB instants -- the in-between along-ray motion that the along-ray
+prior (``lambda_along_ray``, engine/train/along_ray.py) penalises -- and ``gt_wobble_mm``,
+the same for the true positions (what that curve cannot follow of the real motion).
 """
 from __future__ import annotations
 
@@ -93,6 +99,24 @@ def assign(positions: np.ndarray, truth: dict, t0: float, radius: float | None =
     return owner, names
 
 
+def hermite_curve(rgb_times, values, t: float) -> np.ndarray:
+    """Cubic Hermite (Catmull-Rom tangents) through ``values`` [F] x [N] at ``rgb_times`` [F],
+    at ``t``: engine.train.along_ray.along_ray_target over the whole capture."""
+    import torch
+
+    from engine.train.along_ray import along_ray_target
+
+    k = int(np.clip(np.searchsorted(rgb_times, t, side="right") - 1, 0, len(rgb_times) - 2))
+    keys = {"a": k, "b": k + 1}
+    if k >= 1:
+        keys["prev"] = k - 1
+    if k + 2 < len(rgb_times):
+        keys["next"] = k + 2
+    out = along_ray_target({n: rgb_times[i] for n, i in keys.items()},
+                           {n: torch.as_tensor(values[i], dtype=torch.float64) for n, i in keys.items()}, t)
+    return out.numpy()
+
+
 def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_times, spike_view, *,
                       per_interval: int = 4, radius: float | None = None) -> dict:
     """``positions_at(t) -> [N, 3]``; returns {object: {ray_mm, plane_mm, plane_px, gaussians, instants}}."""
@@ -105,16 +129,24 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
                 for i in range(per_interval)]
     cam_c = np.asarray(spike_view.c2w, np.float64)[:3, 3]
     out = {}
-    acc = {k: {"ray": [], "plane": [], "px": [], "w": []} for k in range(len(names))}
+    acc = {k: {"ray": [], "plane": [], "px": [], "w": [], "wob": [], "gt_wob": []} for k in range(len(names))}
+    M0s = {name: object_pose(truth, name, t0) for name in names}
+
+    def truth_at(name, sel, t):
+        M0, Mt = M0s[name], object_pose(truth, name, t)
+        p = (x0[sel] - M0[:3, 3]) @ M0[:3, :3]  # object space (rotation inverse = transpose)
+        return p @ Mt[:3, :3].T + Mt[:3, 3]
+
+    rho = lambda v: np.linalg.norm(v - cam_c, axis=1)  # noqa: E731
+    rho_rgb = [rho(positions_at(T)) for T in rgb_times]
+    rho_gt_rgb = {name: [rho(truth_at(name, owner == k, T)) for T in rgb_times] for k, name in enumerate(names)}
     for t in instants:
         x = positions_at(t)
         for k, name in enumerate(names):
             sel = owner == k
             if not sel.any():
                 continue
-            M0, Mt = object_pose(truth, name, t0), object_pose(truth, name, t)
-            p = (x0[sel] - M0[:3, 3]) @ M0[:3, :3]  # object space (rotation inverse = transpose)
-            gt = p @ Mt[:3, :3].T + Mt[:3, 3]
+            gt = truth_at(name, sel, t)
             e = x[sel] - gt
             ray = gt - cam_c
             ray /= np.linalg.norm(ray, axis=1, keepdims=True)
@@ -127,6 +159,8 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
             a["plane"].append(across)
             a["px"].append(np.linalg.norm(uv_g - uv_t, axis=1))
             a["w"].append(opacities[sel])
+            a["wob"].append(np.abs(rho(x[sel]) - hermite_curve(rgb_times, [r[sel] for r in rho_rgb], t)))
+            a["gt_wob"].append(np.abs(rho(gt) - hermite_curve(rgb_times, rho_gt_rgb[name], t)))
     for k, name in enumerate(names):
         a = acc[k]
         if not a["w"]:
@@ -138,6 +172,8 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
         out[name] = {"ray_mm": 1000 * mean(a["ray"]), "plane_mm": 1000 * mean(a["plane"]),
                      "plane_px": mean(a["px"]), "ray_mm_median": 1000 * med(a["ray"]),
                      "plane_mm_median": 1000 * med(a["plane"]), "plane_px_median": med(a["px"]),
+                     "wobble_mm": 1000 * mean(a["wob"]), "wobble_mm_median": 1000 * med(a["wob"]),
+                     "gt_wobble_mm": 1000 * mean(a["gt_wob"]),
                      "gaussians": int((owner == k).sum()), "instants": len(instants)}
     return out
 
@@ -175,7 +211,9 @@ def main(argv=None) -> int:
             if v.get("gaussians"):
                 print(f"{run} {name}: along spike ray {v['ray_mm']:.1f} mm (median {v['ray_mm_median']:.1f}), "
                       f"image plane {v['plane_mm']:.1f} mm (median {v['plane_mm_median']:.1f}) = {v['plane_px']:.2f} "
-                      f"spike px (median {v['plane_px_median']:.2f}); {v['gaussians']} Gaussians, "
+                      f"spike px (median {v['plane_px_median']:.2f}); wobble along the ray off the Hermite curve "
+                      f"{v['wobble_mm']:.1f} mm (median {v['wobble_mm_median']:.1f}; truth {v['gt_wobble_mm']:.1f}); "
+                      f"{v['gaussians']} Gaussians, "
                       f"{v['instants']} instants")
             else:
                 print(f"{run} {name}: no Gaussians on the object")

@@ -71,3 +71,30 @@ def test_table_handles_missing_values():
     rows = [{"variant": "full", "psnr": None, "ssim": None, "psnr_interframe": None, "ssim_interframe": None,
              "psnr_dynamic": float("nan")}]
     assert "-" in ablate.format_table(rows)
+
+
+def test_equal_steps_sets_iterations_and_no_time_budget(tmp_path):
+    calls = []
+    train_fn, eval_fn = _fakes(calls)
+    rows = ablate.run_ablation("cap", tmp_path, None, ["rgb-only", "full", "full+ray"], steps=300,
+                               overrides={"iterations": 50}, train_fn=train_fn, eval_fn=eval_fn, log=lambda s: None)
+    assert [c["seconds"] for c in calls] == [None] * 3  # no wall-clock budget: the schedule is the steps
+    assert [c["overrides"]["iterations"] for c in calls] == [300] * 3  # --steps wins over --set iterations
+    assert calls[2]["overrides"]["lambda_along_ray"] > 0 and "lambda_along_ray" not in calls[1]["overrides"]
+    assert all(r["steps"] == 100 for r in rows)  # what the run reports
+    with pytest.raises(ValueError, match="exactly one"):
+        ablate.run_ablation("cap", tmp_path, 10.0, ["full"], steps=10, train_fn=train_fn, eval_fn=eval_fn)
+    with pytest.raises(ValueError, match="exactly one"):
+        ablate.run_ablation("cap", tmp_path, None, ["full"], train_fn=train_fn, eval_fn=eval_fn)
+
+
+def test_cli_budget_flags_are_exclusive_and_required():
+    import argparse
+
+    p = argparse.ArgumentParser()
+    ablate.add_arguments(p)
+    assert p.parse_args(["cap", "--out", "o", "--steps", "40", "--seed", "1"]).steps == 40
+    assert p.parse_args(["cap", "--out", "o", "--seconds", "9"]).steps is None
+    for bad in (["cap", "--out", "o"], ["cap", "--out", "o", "--steps", "4", "--seconds", "9"]):
+        with pytest.raises(SystemExit):
+            p.parse_args(bad)

@@ -62,3 +62,28 @@ def test_missing_truth_is_a_clear_error(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps({"frames": []}))
     with pytest.raises(CaptureError, match="ground_truth"):
         te.load_object_truth(tmp_path)
+
+
+def test_wobble_measures_along_ray_departure_from_the_rgb_curve(tmp_path):
+    """``wobble_mm``: distance from the spike camera off the Hermite curve through the RGB
+    instants -- zero for the exact (linear) motion and for a between-frame move across the ray,
+    the offset for a between-frame move along it."""
+    truth, pts = _truth(tmp_path)
+    view = View(intrinsics=Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0),
+                c2w=look_at_c2w((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)), time=0.0)
+    rgb = [0.0, 0.1, 0.2]
+    x0 = pts * 0.9
+    opac = np.ones(len(x0))
+
+    def exact(t):
+        return x0 + [5.0 * t, 0, 0]
+
+    r = te.trajectory_errors(exact, opac, truth, rgb, view, per_interval=3)["ball"]
+    # a straight line 5 m away: rho is nearly a quadratic (one-sided end tangents: ~2.5 mm)
+    assert r["gt_wobble_mm"] < 4.0 and abs(r["wobble_mm"] - r["gt_wobble_mm"]) < 1e-6
+    r = te.trajectory_errors(lambda t: exact(t) + (0.0 if t in rgb else 1.0) * np.array([0.0, 0.02, 0.0]), opac,
+                             truth, rgb, view, per_interval=3)["ball"]
+    assert 16.0 < r["wobble_mm"] < 23.0 and r["gt_wobble_mm"] < 4.0
+    r = te.trajectory_errors(lambda t: exact(t) + (0.0 if t in rgb else 1.0) * np.array([0.0, 0.0, 0.02]), opac,
+                             truth, rgb, view, per_interval=3)["ball"]
+    assert r["wobble_mm"] < 4.0

@@ -1,6 +1,10 @@
-"""``python -m tools ablate CAPTURE --seconds N --out DIR``: equal-time ablation (paper Tables 1, 3).
+"""``python -m tools ablate CAPTURE (--seconds N | --steps N) --out DIR``: equal-time or
+equal-step ablation (paper Tables 1, 3).
 
-Trains every variant for the same wall-clock budget, scores each on the capture's eval
+Trains every variant for the same wall-clock budget (``--seconds``: each variant's schedule
+is sized to fit, so a guided variant runs fewer steps) or the same number of steps
+(``--steps``: ``iterations`` = N, no time budget), records each one's steps and seconds
+(wall time under shared load is noisy: read the two together), scores each on the capture's eval
 frames (:func:`engine.evaluate.evaluate`), prints one table (PSNR / SSIM over all eval
 frames, over inter-frame instants, PSNR over dynamic pixels, PSNR at the RGB instants) and writes
 ``DIR/ablation.csv``, ``DIR/ablation.json`` and ``DIR/ablation.png`` (bar chart).
@@ -13,6 +17,7 @@ rgb-only       coarse DSR + L_frame (the RGB-only 4D Gaussians; Table 3 row 1)
 +spike         + spike rendering and L_spike (Table 3 row 3)
 full           + block colour loss: the BulletTime4D objective (Table 3 row 4)
 full-pg        full with per-Gaussian fine features (sampled at each projection)
+full+ray       full + the along-ray prior (issue 11, ``lambda_along_ray`` 1)
 rgb+repeat     RGB-only trained on repeated frames (Table 1 "Repeat")
 rgb+interp     RGB-only trained on flow-interpolated frames (Table 1 "Interpolate")
 rgb+spike2img  RGB-only trained on spike TFP images + Reinhard colour (Table 1)
@@ -45,6 +50,7 @@ VARIANTS: dict[str, tuple[bool, dict, str]] = {
     "full": (False, {"fine_deformation": True}, "full BulletTime4D"),
     "full-pg": (False, {"fine_deformation": True, "fine_per_gaussian": True},
                 "full, per-Gaussian fine features"),
+    "full+ray": (False, {"fine_deformation": True, "lambda_along_ray": 1.0}, "full + along-ray prior"),
     "rgb+repeat": (True, {"baseline": "repeat"}, "RGB-only + Repeat"),
     "rgb+interp": (True, {"baseline": "interp-flow"}, "RGB-only + Interpolate (flow)"),
     "rgb+spike2img": (True, {"baseline": "spike2img"}, "RGB-only + Spike2img + colour"),
@@ -65,7 +71,9 @@ def keyframe_psnr(run_dir) -> float | None:
 
 def add_arguments(p) -> None:
     p.add_argument("capture", help="capture folder (transforms.json)")
-    p.add_argument("--seconds", type=float, required=True, help="training wall-clock budget per variant")
+    budget = p.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--seconds", type=float, help="training wall-clock budget per variant (equal time)")
+    budget.add_argument("--steps", type=int, help="training steps per variant, no time budget (equal steps)")
     p.add_argument("--out", required=True, help="output folder: one run per variant + ablation.csv/png/json")
     p.add_argument("--variants", default=",".join(VARIANTS),
                    help=f"comma-separated subset of: {', '.join(VARIANTS)}")
@@ -85,10 +93,16 @@ def parse_variants(text: str) -> list[str]:
     return names
 
 
-def run_ablation(capture, out_dir, seconds: float, variants: list[str], *, preset: str = "fast", seed: int = 0,
+def run_ablation(capture, out_dir, seconds: float | None, variants: list[str], *, preset: str = "fast", seed: int = 0,
                  device=None, overrides: dict | None = None, resume: bool = False, train_fn=None, eval_fn=None,
-                 log=print) -> list[dict]:
-    """Train + evaluate each variant; returns one row per variant (metrics + settings)."""
+                 log=print, steps: int | None = None) -> list[dict]:
+    """Train + evaluate each variant; returns one row per variant (metrics + settings).
+    Exactly one of ``seconds`` (equal wall time) and ``steps`` (equal steps: ``iterations``
+    set for every variant, no time budget) is given."""
+    if (seconds is None) == (steps is None):
+        raise ValueError("give exactly one of seconds (equal time) and steps (equal steps)")
+    if steps is not None and int(steps) < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
     train_fn = train_fn or train
     eval_fn = eval_fn or evaluate
     out = Path(out_dir)
@@ -103,7 +117,10 @@ def run_ablation(capture, out_dir, seconds: float, variants: list[str], *, prese
             log(f"[ablate] {name}: reusing {metrics_path}")
         else:
             merged = {**(overrides or {}), **ov}
-            log(f"[ablate] {name}: training {seconds:g} s (rgb_only={rgb_only}, {merged or 'defaults'})")
+            if steps is not None:
+                merged["iterations"] = int(steps)
+            budget = f"{seconds:g} s" if steps is None else f"{int(steps)} steps"
+            log(f"[ablate] {name}: training {budget} (rgb_only={rgb_only}, {merged or 'defaults'})")
             t0 = time.perf_counter()
             summary = train_fn(capture, run_dir, preset=preset, seconds=seconds, rgb_only=rgb_only, resume=False,
                                device=device, seed=seed, overrides=merged or None)
@@ -116,7 +133,7 @@ def run_ablation(capture, out_dir, seconds: float, variants: list[str], *, prese
             metrics["psnr_keyframe"] = keyframe_psnr(run_dir)
         rows.append({"variant": name, "description": desc, **{k: metrics.get(k) for k in COLUMNS},
                      "train_seconds": metrics.get("train_seconds"), "steps": metrics.get("steps", metrics.get("step")),
-                     "num_gaussians": metrics.get("num_gaussians")})
+                     "train_wall_s": metrics.get("train_wall_s"), "num_gaussians": metrics.get("num_gaussians")})
         log(f"[ablate] {name}: " + ", ".join(f"{k}={fmt(metrics.get(k))}" for k in COLUMNS))
     return rows
 
@@ -136,7 +153,8 @@ def format_table(rows: list[dict]) -> str:
 
 
 def write_csv(rows: list[dict], path) -> Path:
-    return report.write_csv(rows, path, ["variant", "description", *COLUMNS, "steps", "train_seconds", "num_gaussians"])
+    return report.write_csv(rows, path, ["variant", "description", *COLUMNS, "steps", "train_seconds", "train_wall_s",
+                                         "num_gaussians"])
 
 
 def plot(rows: list[dict], path, title: str = "") -> Path:
@@ -168,7 +186,7 @@ def main(args) -> int:
     out = Path(args.out)
     try:
         rows = run_ablation(args.capture, out, args.seconds, variants, preset=args.preset, seed=args.seed,
-                            device=args.device, overrides=overrides, resume=args.resume,
+                            device=args.device, overrides=overrides, resume=args.resume, steps=args.steps,
                             log=lambda s: print(s, file=sys.stderr, flush=True))
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -177,9 +195,11 @@ def main(args) -> int:
     print(table)
     write_csv(rows, out / "ablation.csv")
     (out / "ablation.json").write_text(json.dumps({"capture": str(args.capture), "seconds": args.seconds,
+                                                   "steps": args.steps,
                                                    "preset": args.preset, "seed": args.seed, "rows": rows},
                                                   indent=2, default=str))
     (out / "ablation.txt").write_text(table + "\n")
-    plot(rows, out / "ablation.png", title=f"{Path(args.capture).name}: {args.seconds:g} s per variant ({args.preset})")
+    budget = f"{args.seconds:g} s" if args.steps is None else f"{args.steps} steps"
+    plot(rows, out / "ablation.png", title=f"{Path(args.capture).name}: {budget} per variant ({args.preset})")
     print(f"wrote {out / 'ablation.csv'}, {out / 'ablation.png'}")
     return 0

@@ -149,6 +149,13 @@ class TrainConfig:
     spike_skip_static: bool = True  # no between-frame renders in spike windows without change (engine.spike.change)
     fine_change_gate: bool = True  # fine feature only for Gaussians where / windows when the spike view changes
     spike_change_block: int = 4  # block size (spike pixels) of the change maps
+    # along-ray prior (issue 11, engine.train.along_ray): between RGB instants the distance of the
+    # Gaussians the spike loss touches from the spike camera follows a smooth curve through its
+    # values at the neighbouring RGB instants (the one component the spike view cannot see)
+    lambda_along_ray: float = 0.0  # weight of the prior (0: off)
+    along_ray_curve: str = "hermite"  # hermite (Catmull-Rom tangents) | linear
+    along_ray_beta: float = 0.01  # smooth-L1 knee, x extent
+    along_ray_max_gaussians: int = 4096  # random subset of the touched Gaussians per step (0: all)
     baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img
     baseline_per_interval: int = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
 

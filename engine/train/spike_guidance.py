@@ -328,7 +328,7 @@ class SpikeGuidance:
         vt["time"] = inst.time
         rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time,
                                                            motion_only=bool(self.cfg.between_motion_only))
-        out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": vt["width"] / item["width"]}
+        out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": vt["width"] / item["width"], "meta": meta}
         ctx.__dict__["_between"] = out
         return out
 

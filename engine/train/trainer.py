@@ -11,7 +11,8 @@ Two stages (4D Gaussians, Wu et al.; paper's "coarse DSR + L_frame"):
 Each step renders one random train frame (a per-epoch permutation, seeded by ``seed``) and
 minimises a list of loss terms (:class:`engine.train.losses.LossTerm`): L1 + lambda *
 D-SSIM on the RGB frame plus the deformation regularisers, and the terms of the loss
-factories in :data:`LOSS_FACTORIES` (the spike guidance; none with ``rgb_only=True``).
+factories in :data:`LOSS_FACTORIES` (the spike guidance and its along-ray prior; none with
+``rgb_only=True``).
 
 The schedule is a function of the total step count only (``engine.train.presets``); the
 loop around the trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.run`.
@@ -44,6 +45,7 @@ from ..scene.deformation import make_field
 from ..scene.gaussians import GaussianModel
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
 from ..scene.trajectory import extrapolate_junctions
+from .along_ray import along_ray_factory
 from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
@@ -54,9 +56,10 @@ from .spike_guidance import guidance_factory, spike_stream_info
 
 # The loss factories of a run, in one place: each ``(trainer) -> [LossTerm]`` is called when a
 # (non rgb_only) run starts. The spike guidance (paper Eq. 4-23) returns nothing without a
-# spike stream, so such captures train exactly as the RGB-only model.
+# spike stream, so such captures train exactly as the RGB-only model. The along-ray prior
+# (issue 11) rides on the guidance's between-frame render, so it comes after it.
 LossFactory = Callable[["Trainer"], "list[LossTerm] | None"]
-LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory,)
+LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, along_ray_factory)
 
 
 # ---------------------------------------------------------------------------------- helpers
