@@ -5,8 +5,10 @@ The engine's compiled code (the rasterizer kernels, the PNG row decoder) is cach
 """
 from __future__ import annotations
 
+import importlib
 import os
 import re
+import threading
 
 
 def install_cache_locator(module: str) -> None:
@@ -65,3 +67,34 @@ def install_cache_locator(module: str) -> None:
     impl._locator_classes.insert(0, PerImportNameLocator)
 
 
+
+
+class LazyKernels:
+    """A module of numba kernels, imported on first use (numba compiles or loads its cache
+    then, seconds, so importing the engine stays cheap) and at most once across threads.
+    ``load()`` returns the module or None; ``error`` holds why it could not be imported
+    (no numba, a broken llvmlite), so a caller can fall back to its torch path and say why.
+    """
+
+    def __init__(self, package: str, name: str):
+        self.package, self.name = package, name
+        self.module = None
+        self.error: BaseException | None = None
+        self._lock = threading.Lock()
+
+    def load(self):
+        if self.module is None and self.error is None:
+            with self._lock:
+                if self.module is None and self.error is None:
+                    try:
+                        self.module = importlib.import_module("." + self.name, self.package)
+                    except Exception as exc:  # ImportError, or a broken numba/llvmlite install
+                        self.error = exc
+        return self.module
+
+    def available(self) -> bool:
+        return self.load() is not None
+
+    def unavailable_reason(self) -> str:
+        self.load()
+        return "" if self.error is None else f"{type(self.error).__name__}: {self.error}"

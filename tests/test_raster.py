@@ -380,10 +380,19 @@ def test_gsplat_never_imported_without_cuda():
         resolve_backend("vulkan", torch.device("cpu"))
 
 
+def test_lazy_kernels_import_once_and_report_why_not():
+    from engine.numba_cache import LazyKernels
+    missing = LazyKernels("engine", "no_such_kernels")
+    assert missing.load() is None and not missing.available()
+    assert missing.unavailable_reason().startswith("ModuleNotFoundError")
+    ok = LazyKernels("engine", "colour")  # any importable module: loaded once, then reused
+    assert ok.load() is ok.load() is sys.modules["engine.colour"] and ok.unavailable_reason() == ""
+
+
 def test_numba_missing_falls_back_to_torch_with_warning(monkeypatch):
     import engine.raster as raster
-    monkeypatch.setattr(raster_cpu, "_kernels", None)
-    monkeypatch.setattr(raster_cpu, "_kernels_error", ImportError("No module named 'numba'"))
+    monkeypatch.setattr(raster_cpu.KERNELS, "module", None)
+    monkeypatch.setattr(raster_cpu.KERNELS, "error", ImportError("No module named 'numba'"))
     monkeypatch.setattr(raster, "_warned", set())
     sc = make_scene(N=30, seed=15)
     with warnings.catch_warnings(record=True) as rec:

@@ -5,38 +5,25 @@ numba is imported lazily; ``available()`` says whether it can be used.
 """
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import torch
 
+from ..numba_cache import LazyKernels
 from .projection import Projected
 
-_kernels = None
-_kernels_error: BaseException | None = None
-_lock = threading.Lock()
+KERNELS = LazyKernels(__package__, "_kernels")  # numba compiles / loads its cache on first use
 
 
 def _load():
-    global _kernels, _kernels_error
-    if _kernels is None and _kernels_error is None:
-        with _lock:
-            if _kernels is None and _kernels_error is None:
-                try:
-                    from . import _kernels as k  # lazy: numba compiles / loads its cache here
-                    _kernels = k
-                except Exception as exc:  # ImportError, or a broken numba/llvmlite install
-                    _kernels_error = exc
-    return _kernels
+    return KERNELS.load()
 
 
 def available() -> bool:
-    return _load() is not None
+    return KERNELS.available()
 
 
 def unavailable_reason() -> str:
-    _load()
-    return "" if _kernels_error is None else f"{type(_kernels_error).__name__}: {_kernels_error}"
+    return KERNELS.unavailable_reason()
 
 
 def _np(t: torch.Tensor) -> np.ndarray:

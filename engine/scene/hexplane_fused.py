@@ -17,34 +17,23 @@ stored channels-last) and writes the plane and coordinate gradients together.
 """
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
-_kernels = None
-_kernels_error: BaseException | None = None
-_lock = threading.Lock()
+from ..numba_cache import LazyKernels
+
+KERNELS = LazyKernels(__package__, "_hexplane_kernels")  # numba compiles / loads its cache on first use
 
 MIN_CHUNK = 512  # points per parallel chunk at least (a chunk owns a whole gradient grid)
 
 
 def _load():
-    global _kernels, _kernels_error
-    if _kernels is None and _kernels_error is None:
-        with _lock:
-            if _kernels is None and _kernels_error is None:
-                try:
-                    from . import _hexplane_kernels as k  # numba compiles / loads its cache here
-                    _kernels = k
-                except Exception as exc:  # ImportError, or a broken numba/llvmlite install
-                    _kernels_error = exc
-    return _kernels
+    return KERNELS.load()
 
 
 def available() -> bool:
-    return _load() is not None
+    return KERNELS.available()
 
 
 def supports(xyzt: torch.Tensor, planes) -> bool:
