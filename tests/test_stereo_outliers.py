@@ -178,7 +178,7 @@ def test_backdrop_gaussians_get_their_opacity_once_at_the_first_step():
 
     cfg = get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9})
     hooks = geometry_post_step_hooks(cfg)
-    assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"backdrop_opacity": 0.9}))
+    assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.0}))
     logits = torch.full((10, 1), float(torch.logit(torch.tensor(0.1))))
     g = SimpleNamespace(opacity_logits=torch.nn.Parameter(logits.clone()), num_gaussians=10)
     tr = SimpleNamespace(init_info={"backdrop": 4, "num_points": 10}, model=SimpleNamespace(gaussians=g))
@@ -271,3 +271,11 @@ def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
     again.load_state(state)
     assert again.field_box == wide.field_box
     assert len(inside_box(xyz, ([1e9] * 3, [2e9] * 3))) == len(xyz) and inside_box(xyz, None) is xyz
+
+
+def test_planes_and_backdrop_are_on_in_every_preset():
+    from engine.train.presets import PRESETS, get_preset
+
+    for name in PRESETS:
+        cfg = get_preset(name)
+        assert cfg.init_planes and cfg.init_backdrop == 0.3 and cfg.backdrop_opacity == 0.9
