@@ -103,7 +103,8 @@ class TrainConfig:
     # (all three act only with stereo init; a points.ply init has no backdrop.) Measured at 600 fast steps
     # with the backdrop left out of the scene extent and the field bounds (Trainer.field_box): novel scene
     # (RGB-only) 22.79 -> 23.53 dB, coverage at 20 deg 95.2 -> 100 %, depth error 2.5 -> 1.7 %; demo
-    # (filled eval, same session) -0.02 / +0.10 dB on seeds 0 / 1. Before that fix: demo -0.17 / -0.67.
+    # (filled eval, same session) -0.02 / +0.10 dB on seeds 0 / 1 (RGB-only +0.07 / -0.21). Before that
+    # fix, RGB-only in an earlier session: demo -0.17 / -0.67. README "The backdrop no longer widens".
 
     # ---- bookkeeping ------------------------------------------------------------------
     checkpoint_every_s: float = 30.0
