@@ -108,7 +108,8 @@ def test_every_switch_takes_part_in_a_run(tmp_path):
     from tools.synthetic import write_synthetic_capture
 
     on = {"lambda_binocular": 0.5, "lambda_depth_smooth": 0.1, "opacity_decay": 0.99, "random_background": True,
-          "lambda_depth": 0.1, "init": "stereo", "init_backdrop": 0.2}
+          "lambda_depth": 0.1, "init": "stereo", "init_backdrop": 0.2,
+          "backdrop_opacity": 0.0}  # the one post-step hook below is opacity decay
     names = [t.name for t in default_loss_terms(get_preset("fast", on))]
     assert {"binocular", "depth_smooth", "stereo_depth"} <= set(names)
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))

@@ -178,7 +178,7 @@ def test_backdrop_gaussians_get_their_opacity_once_at_the_first_step():
 
     cfg = get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9})
     hooks = geometry_post_step_hooks(cfg)
-    assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"backdrop_opacity": 0.9}))
+    assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.0}))
     logits = torch.full((10, 1), float(torch.logit(torch.tensor(0.1))))
     g = SimpleNamespace(opacity_logits=torch.nn.Parameter(logits.clone()), num_gaussians=10)
     tr = SimpleNamespace(init_info={"backdrop": 4, "num_points": 10}, model=SimpleNamespace(gaussians=g))
@@ -229,3 +229,53 @@ def test_depth_prior_adds_the_plane_where_stereo_is_empty_and_agrees():
     assert np.allclose(d[added], truth[added], rtol=0.005)
     assert not m[5:15, 60:70].any()                # the plane disagrees with the object around it
     assert np.array_equal(d[ok], depth[ok])
+
+
+def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
+    """The init_backdrop ring (beyond the image borders) is left out of the scene extent (lr,
+    densify thresholds, near plane) and of the deformation field's bounds; without a backdrop
+    both are computed as before (field_box None, bounds from every Gaussian)."""
+    import warnings
+
+    from engine.io.capture import load_capture
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer, inside_box, robust_bounds, scene_points
+    from tools.synthetic import write_synthetic_capture
+
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
+    runs = {}
+    for back in (0.0, 0.5):
+        tr = Trainer(cap, get_preset("fast", {"init": "stereo", "init_backdrop": back, "iterations": 4}),
+                     device="cpu", rgb_only=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tr.init_model()
+            tr.start_deformation()
+        d = tr.model.deformation
+        runs[back] = (tr, d.bounds_min.numpy().copy(), d.bounds_max.numpy().copy())
+    plain, lo0, hi0 = runs[0.0]
+    wide, lo1, hi1 = runs[0.5]
+    assert plain.field_box is None and "backdrop" not in plain.init_info
+    n_back = wide.init_info["backdrop"]
+    assert n_back > 0 and wide.field_box is not None
+    assert wide.extent == plain.extent                       # the same non-backdrop points
+    xyz = wide.model.gaussians.means.detach().numpy()
+    assert len(scene_points(xyz, wide.init_info)) == len(xyz) - n_back
+    span = np.linalg.norm(hi0 - lo0)
+    assert np.abs(lo1 - lo0).max() < 0.05 * span and np.abs(hi1 - hi0).max() < 0.05 * span
+    wlo, whi = robust_bounds(xyz)                            # what the backdrop alone would give
+    assert np.linalg.norm(whi - wlo) > np.linalg.norm(hi1 - lo1)
+    # resume keeps the box; a box leaving fewer than 4 points falls back to all of them
+    state = wide.state(0)
+    again = Trainer(cap, wide.cfg, device="cpu", rgb_only=True)
+    again.load_state(state)
+    assert again.field_box == wide.field_box
+    assert len(inside_box(xyz, ([1e9] * 3, [2e9] * 3))) == len(xyz) and inside_box(xyz, None) is xyz
+
+
+def test_planes_and_backdrop_are_on_in_every_preset():
+    from engine.train.presets import PRESETS, get_preset
+
+    for name in PRESETS:
+        cfg = get_preset(name)
+        assert cfg.init_planes and cfg.init_backdrop == 0.3 and cfg.backdrop_opacity == 0.9

@@ -98,6 +98,23 @@ def robust_bounds(points: np.ndarray, margin: float = 0.1):
     return lo - pad, hi + pad
 
 
+def scene_points(xyz: np.ndarray, info: dict) -> np.ndarray:
+    """The initial points [N,3] less the ``init_backdrop`` tail (``info["backdrop"]`` rows,
+    appended last by engine.geometry.init_points): the ring beyond the image borders must not
+    widen the scene extent (position lr, densify thresholds, near plane) nor the field bounds."""
+    n_back = int(info.get("backdrop", 0) or 0)
+    return xyz[:len(xyz) - n_back] if 0 < n_back < len(xyz) else xyz
+
+
+def inside_box(points: np.ndarray, box) -> np.ndarray:
+    """Rows of ``points`` [N,3] inside the axis-aligned ``box`` (lo[3], hi[3]); all of them
+    where that leaves fewer than 4 (or ``box`` is None)."""
+    if box is None:
+        return points
+    keep = np.all((points >= np.asarray(box[0])) & (points <= np.asarray(box[1])), axis=1)
+    return points[keep] if keep.sum() >= 4 else points
+
+
 # ---------------------------------------------------------------------------------- trainer
 class Trainer:
     """Holds the data, model and optimisers of one run; :meth:`step` does one iteration."""
@@ -158,6 +175,7 @@ class Trainer:
                 self.loss_terms.extend(factory(self) or [])
         self.init_info: dict = {}
         self.extent = 1.0
+        self.field_box = None  # (lo[3], hi[3]) of the non-backdrop init points; see init_model
         self.last_losses: dict = {}
         self._carried_to = -math.inf  # latest frame time whose motion was carried forward
         self.carry_info: list[dict] = []  # trajectories carried by scene flow (traj_carry="flow")
@@ -223,7 +241,11 @@ class Trainer:
             self.init_info["depth_prior_unavailable"] = self.depth_prior_note
         centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3]
                             for it in self.items])
-        self.extent = scene_extent(pts.xyz, centers)
+        core = scene_points(pts.xyz, pts.info)
+        self.extent = scene_extent(core, centers)
+        # with a backdrop, the deformation field's bounds come from the Gaussians inside the box
+        # of the points that are not backdrop (None without one: bounds as before, bit-identical)
+        self.field_box = None if core is pts.xyz else (core.min(0).tolist(), core.max(0).tolist())
         g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=self.device)
         g.setup_optimizer(cfg, self.extent)
         self.model = Model4D(g, None, background=cfg.background, near_plane=near_plane_for_extent(self.extent))
@@ -258,7 +280,7 @@ class Trainer:
             return
         g = self.model.gaussians
         means = g.means.detach().cpu().numpy()
-        lo, hi = robust_bounds(means)
+        lo, hi = robust_bounds(inside_box(means, self.field_box))
         cfg = self.cfg
         if self.between_supervised():  # spike / block colour losses constrain the field between frames
             cfg = cfg.replace(time_resolution_per_frame=cfg.spike_time_resolution_per_frame)
@@ -429,6 +451,7 @@ class Trainer:
             "time_range": list(self.time_range),
             "frame_times": list(self.frame_times),
             "extent": self.extent,
+            "field_box": self.field_box,
             "init": self.init_info,
             "gaussians": self.model.gaussians.num_gaussians,
             "carried_to": self._carried_to,
@@ -451,6 +474,7 @@ class Trainer:
     def load_state(self, state: dict) -> int:
         self.total_steps = int(state["total_steps"])
         self.extent = float(state.get("extent", 1.0))
+        self.field_box = state.get("field_box")
         self.init_info = state.get("init", {})
         self._carried_to = float(state.get("carried_to", -math.inf))
         self.model = Model4D.from_state(state["model"], self.cfg, device=self.device)
