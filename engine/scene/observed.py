@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cameras import View
+from ..cameras import View, project_points
 from ..errors import RunError
 
 DEFAULT_INSET_PX = 4.0
@@ -28,12 +28,10 @@ def centre_inside(means: np.ndarray, view: View, inset_px: float = DEFAULT_INSET
     """bool [N]: ``means`` [N,3] in front of ``view`` whose projection lies at least
     ``inset_px`` inside its image (pixel centres at ``u + 0.5``, the engine's convention)."""
     k = view.intrinsics
-    q = np.asarray(means, np.float64) @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
-    z = q[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):  # centres behind / at the camera are masked by ``front``
+        uv, z = project_points(view, means)
     front = z > 1e-6
-    zs = np.where(front, z, 1.0)
-    u = k.fx * q[:, 0] / zs + k.cx
-    v = k.fy * q[:, 1] / zs + k.cy
+    u, v = uv[:, 0], uv[:, 1]
     return front & (u >= inset_px) & (u <= k.width - inset_px) & (v >= inset_px) & (v <= k.height - inset_px)
 
 
