@@ -27,6 +27,7 @@ CAMERA_EYES = {
     "rgb1": (0.1, -1.0, 0.45),
 }
 MOVING = ("ball", "turntable", "cube")
+EVAL0_ANGLES = (-15.0, 10.0)  # held out, 15 deg to the right (+X) and 10 deg above the pair
 
 
 def object_poses(t: float, speed: float = 1.0):
