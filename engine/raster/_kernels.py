@@ -339,17 +339,25 @@ def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
                 q = min(max(power, F0), F_QMAX)
                 alpha = min(amax, op * exp_neg(q))
                 tp = st[ST + p]
+                act = st[SACT + p]
                 nt = tp * (F1 - alpha)
-                ok = (power >= F0) and (alpha >= F_THR) and (st[SACT + p] != F0)
-                use = ok and (nt > F_STOP)
-                w = alpha * tp if use else F0
+                # `&`, not `and`: no short circuit, so no conditional loads; every state
+                # update is an exact arithmetic blend with a 0 / 1 mask rather than a
+                # select of the old value, which LLVM turned into vmaskmovps stores
+                # (microcoded on AMD Zen: they cost more than the exp)
+                okf = F1 if ((power >= F0) & (alpha >= F_THR)) else F0
+                okf = okf * act  # act is 0 or 1
+                usef = okf if nt > F_STOP else F0
+                au = alpha * usef  # alpha where it is composited, else exactly 0
+                w = au * tp
                 st[SA0 + p] += w * f0
                 st[SA1 + p] += w * f1
                 st[SA2 + p] += w * f2
                 st[SA3 + p] += w * f3
-                st[ST + p] = nt if use else tp
-                st[SLAST + p] = fi if use else st[SLAST + p]
-                st[SACT + p] = F0 if (ok and not use) else st[SACT + p]
+                st[ST + p] = tp * (F1 - au)  # nt where used, tp exactly otherwise
+                last = st[SLAST + p]
+                st[SLAST + p] = last + (fi - last) * usef  # small integers: exact
+                st[SACT + p] = act - okf + usef  # 0 where ok and not used, else unchanged
         if (i & 3) == 3:  # any pixel still open? (checked every 4th Gaussian: cheaper)
             any_act = False
             for p in range(TS2):
@@ -374,6 +382,11 @@ def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
 # backward state slots: pixel x, y, transmittance, final transmittance, last index, dL/dalpha,
 # dL/dfeature 0..3, features composited behind (b0..b3)
 BPX, BPY, BT, BTF, BLAST, BVA, BV0, BV1, BV2, BV3, BB0, BB1, BB2, BB3 = [j * TS2 for j in range(14)]
+# then, after them, one Gaussian's per-lane gradient sums (TS lanes each): mean x, y, conic
+# a, b, c, opacity, features 0..3
+GN = 10
+BG = 14 * TS2
+GX, GY, GA, GB, GC, GO, GF0, GF1, GF2, GF3 = [BG + j * TS for j in range(GN)]
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp", "reassoc"})
@@ -389,7 +402,7 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         return
     y0 = ty * TS
     x0 = tx * TS
-    st = np.zeros(14 * TS2, np.float32)
+    st = np.zeros(14 * TS2 + GN * TS, np.float32)
     i_max = -1
     for p in range(TS2):
         py = y0 + p // TS
@@ -424,21 +437,15 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         f2 = packed[k, 8]
         f3 = packed[k, 9]
         fi = _F(i)
-        g_x = F0
-        g_y = F0
-        g_a = F0
-        g_b = F0
-        g_c = F0
-        g_o = F0
-        g_f0 = F0
-        g_f1 = F0
-        g_f2 = F0
-        g_f3 = F0
+        # per-lane gradient sums over the rows, reduced once per Gaussian below (summing
+        # the 8 lanes after every row cost ~40 shuffles and adds per row)
+        for j in range(GN * TS):
+            st[BG + j] = F0
         sp = spans[k]
         r0 = sp & 255
         r1 = sp >> 8
         for r in range(r0, r1):
-            base = r * TS
+            base = (r & 7) * TS  # (& 7: tells LLVM the row slots never reach the BG slots)
             for j in range(TS):
                 p = base + j
                 dx = gx - st[BPX + p]
@@ -448,10 +455,14 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
                 vis = exp_neg(q)
                 raw = op * vis
                 alpha = min(amax, raw)
-                ok = (power >= F0) and (alpha >= F_THR) and (fi <= st[BLAST + p])
+                # `&`, not `and`: no short circuit, hence no masked (conditional) loads
+                ok = (power >= F0) & (alpha >= F_THR) & (fi <= st[BLAST + p])
                 ra = F1 / (F1 - alpha)
                 tp = st[BT + p]
-                tn = tp * ra if ok else tp
+                # exact blend (okf is 0 or 1): a select with the loaded tp as one arm became
+                # a masked store (vmaskmovps, microcoded on AMD Zen)
+                okf = F1 if ok else F0
+                tn = tp * (ra * okf + (F1 - okf))
                 fac = alpha * tn if ok else F0
                 v0 = st[BV0 + p]
                 v1 = st[BV1 + p]
@@ -464,22 +475,43 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
                 v_a = (f0 * tn - b0 * ra) * v0 + (f1 * tn - b1 * ra) * v1 \
                     + (f2 * tn - b2 * ra) * v2 + (f3 * tn - b3 * ra) * v3 \
                     + st[BTF + p] * ra * st[BVA + p]
-                g_f0 += fac * v0
-                g_f1 += fac * v1
-                g_f2 += fac * v2
-                g_f3 += fac * v3
+                st[GF0 + j] += fac * v0
+                st[GF1 + j] += fac * v1
+                st[GF2 + j] += fac * v2
+                st[GF3 + j] += fac * v3
                 st[BB0 + p] = b0 + fac * f0
                 st[BB1 + p] = b1 + fac * f1
                 st[BB2 + p] = b2 + fac * f2
                 st[BB3 + p] = b3 + fac * f3
                 st[BT + p] = tn
-                v_sigma = -raw * v_a if (ok and raw <= amax) else F0
-                g_x += v_sigma * (ca * dx + cb * dy)
-                g_y += v_sigma * (cb * dx + cc * dy)
-                g_a += v_sigma * dx * dx
-                g_b += v_sigma * dx * dy
-                g_c += v_sigma * dy * dy
-                g_o += v_sigma
+                v_sigma = -raw * v_a if (ok & (raw <= amax)) else F0
+                st[GX + j] += v_sigma * (ca * dx + cb * dy)
+                st[GY + j] += v_sigma * (cb * dx + cc * dy)
+                st[GA + j] += v_sigma * dx * dx
+                st[GB + j] += v_sigma * dx * dy
+                st[GC + j] += v_sigma * dy * dy
+                st[GO + j] += v_sigma
+        g_x = F0
+        g_y = F0
+        g_a = F0
+        g_b = F0
+        g_c = F0
+        g_o = F0
+        g_f0 = F0
+        g_f1 = F0
+        g_f2 = F0
+        g_f3 = F0
+        for j in range(TS):
+            g_x += st[GX + j]
+            g_y += st[GY + j]
+            g_a += st[GA + j]
+            g_b += st[GB + j]
+            g_c += st[GC + j]
+            g_o += st[GO + j]
+            g_f0 += st[GF0 + j]
+            g_f1 += st[GF1 + j]
+            g_f2 += st[GF2 + j]
+            g_f3 += st[GF3 + j]
         v_isect[k, 0] = g_x
         v_isect[k, 1] = g_y
         v_isect[k, 2] = FHALF * g_a
