@@ -42,6 +42,18 @@ def _stable_argsort_positive(d: np.ndarray) -> np.ndarray:
     return key & 0xFFFFFFFF
 
 
+def depth_order(radii_xy: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """Flat indices c * N + g [V] int64 of the visible Gaussians (radius > 0), sorted by
+    camera, then depth (stable). radii_xy [C*N,2] int32, depths [C,N]."""
+    C, N = depths.shape
+    vis = radii_xy[:, 0].reshape(C, N) > 0
+    parts = []
+    for c in range(C):
+        idx = np.flatnonzero(vis[c])
+        parts.append(idx[_stable_argsort_positive(depths[c, idx])] + c * N)
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+
 def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
                   radii_xy: torch.Tensor, depths: torch.Tensor, width: int, height: int,
                   tile_size: int):
@@ -52,13 +64,7 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     rxy = _np(radii_xy).reshape(C * N, 2)
-    dep = _np(depths).reshape(C, N)
-    vis = rxy[:, 0].reshape(C, N) > 0
-    parts = []
-    for c in range(C):
-        idx = np.flatnonzero(vis[c])
-        parts.append(idx[_stable_argsort_positive(dep[c, idx])] + c * N)
-    order = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+    order = depth_order(rxy, _np(depths).reshape(C, N))
     offsets, ids, spans = k.bin_gaussians(
         _np(means2d).reshape(C * N, 2), _np(conics).reshape(C * N, 3),
         _np(opacities).reshape(C * N), rxy, order, N, C, tile_size, tiles_x, tiles_y,
