@@ -30,24 +30,35 @@ N_GRAD = 6  # per-intersection gradient slots before the features: mx, my, ca, c
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ellipse_yspan(mx, my, A, B, C, L, xa, xb):
-    """y-interval (lo, hi) of the ellipse 0.5 [dx dy] [[A B] [B C]] [dx dy]^T <= L over the
-    x-band xa <= x <= xb (lo > hi: the band misses it). Exact: the top / bottom of the band's
-    slice is the ellipse's own top / bottom when that lies in the band, else a band edge."""
+def _ellipse_setup(A, B, C, L):
+    """Per-Gaussian constants of the ellipse 0.5 [dx dy] [[A B] [B C]] [dx dy]^T <= L for
+    ``_ellipse_yspan`` (computed once per Gaussian, not once per tile column: the square
+    roots and divisions were most of the binning's time): (usable, x half-width xe,
+    y half-height ye, 2 L C, det, 1 / C, -B / C, dx of the topmost point)."""
     det = A * C - B * B
     if not (det > 0.0 and A > 0.0 and C > 0.0 and L > 0.0):
-        return -1e30, 1e30  # degenerate: no culling
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     xe = math.sqrt(2.0 * L * C / det)
     ye = math.sqrt(2.0 * L * A / det)
+    inv_c = 1.0 / C
+    return True, xe, ye, 2.0 * L * C, det, inv_c, -B * inv_c, -B * ye / A
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ellipse_yspan(mx, my, usable, xe, ye, two_lc, det, inv_c, nb_c, t, xa, xb):
+    """y-interval (lo, hi) of the ellipse (constants from ``_ellipse_setup``) over the x-band
+    xa <= x <= xb (lo > hi: the band misses it). Exact: the top / bottom of the band's
+    slice is the ellipse's own top / bottom when that lies in the band, else a band edge."""
+    if not usable:
+        return -1e30, 1e30  # degenerate: no culling
     da = max(xa - mx, -xe)
     db = min(xb - mx, xe)
     if da > db:
         return 1.0, -1.0
-    ra = math.sqrt(max(2.0 * L * C - det * da * da, 0.0)) / C
-    rb = math.sqrt(max(2.0 * L * C - det * db * db, 0.0)) / C
-    ca = -B * da / C
-    cb = -B * db / C
-    t = -B * ye / A  # dx of the topmost point (dy = +ye); the bottom one is at -t
+    ra = math.sqrt(max(two_lc - det * da * da, 0.0)) * inv_c
+    rb = math.sqrt(max(two_lc - det * db * db, 0.0)) * inv_c
+    ca = nb_c * da
+    cb = nb_c * db
     hi = ye if (da <= t and t <= db) else max(ca + ra, cb + rb)
     lo = -ye if (da <= -t and -t <= db) else min(ca - ra, cb - rb)
     return my + lo - 1e-3, my + hi + 1e-3
@@ -67,11 +78,12 @@ def _visit(g, means2d, conics, opac, radii_xy, tile_size, tiles_x, tiles_y, widt
     A = np.float64(conics[g, 0])
     B = np.float64(conics[g, 1])
     C = np.float64(conics[g, 2])
+    usable, xe, ye, two_lc, det, inv_c, nb_c, t = _ellipse_setup(A, B, C, L)
     n = 0
     for tx in range(x0, x1):
         xa = tx * tile_size + 0.5
         xb = min((tx + 1) * tile_size, width) - 0.5
-        lo, hi = _ellipse_yspan(mx, my, A, B, C, L, xa, xb)
+        lo, hi = _ellipse_yspan(mx, my, usable, xe, ye, two_lc, det, inv_c, nb_c, t, xa, xb)
         lo = max(lo, my - ry)
         hi = min(hi, my + ry)
         if lo > hi:
@@ -379,13 +391,15 @@ def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
             last_i[c, py, px] = np.int32(st[SLAST + p])
 
 
-# backward state slots: pixel x, y, transmittance, final transmittance, last index, dL/dalpha,
-# dL/dfeature 0..3, features composited behind (b0..b3)
-BPX, BPY, BT, BTF, BLAST, BVA, BV0, BV1, BV2, BV3, BB0, BB1, BB2, BB3 = [j * TS2 for j in range(14)]
+# backward state slots: pixel x, y, transmittance, last index, final transmittance times
+# dL/dalpha, dL/dfeature 0..3, and S = sum_k b_k dL/dfeature_k where b_k is feature k
+# composited behind the current Gaussian. dL/dalpha_i needs the b_k only through S, so S
+# is carried instead of b_0..b_3 (4 loads, 4 stores and 4 FMAs less per tile row).
+BPX, BPY, BT, BLAST, BTVA, BV0, BV1, BV2, BV3, BS = [j * TS2 for j in range(10)]
 # then, after them, one Gaussian's per-lane gradient sums (TS lanes each): mean x, y, conic
 # a, b, c, opacity, features 0..3
 GN = 10
-BG = 14 * TS2
+BG = 10 * TS2
 GX, GY, GA, GB, GC, GO, GF0, GF1, GF2, GF3 = [BG + j * TS for j in range(GN)]
 
 
@@ -402,7 +416,7 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         return
     y0 = ty * TS
     x0 = tx * TS
-    st = np.zeros(14 * TS2 + GN * TS, np.float32)
+    st = np.zeros(BG + GN * TS, np.float32)
     i_max = -1
     for p in range(TS2):
         py = y0 + p // TS
@@ -410,16 +424,14 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         st[BPX + p] = _F(px) + FHALF
         st[BPY + p] = _F(py) + FHALF
         st[BT + p] = F1
-        st[BTF + p] = F1
         st[BLAST + p] = _F(-1.0)
         if py < height and px < width:
             tfv = final_t[c, py, px]
             st[BT + p] = tfv
-            st[BTF + p] = tfv
             lp = last_i[c, py, px]
             st[BLAST + p] = _F(lp)
             i_max = max(i_max, lp)
-            st[BVA + p] = v_alpha[c, py, px]
+            st[BTVA + p] = tfv * v_alpha[c, py, px]
             st[BV0 + p] = v_feat[c, py, px, 0]
             st[BV1 + p] = v_feat[c, py, px, 1]
             st[BV2 + p] = v_feat[c, py, px, 2]
@@ -468,25 +480,20 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
                 v1 = st[BV1 + p]
                 v2 = st[BV2 + p]
                 v3 = st[BV3 + p]
-                b0 = st[BB0 + p]
-                b1 = st[BB1 + p]
-                b2 = st[BB2 + p]
-                b3 = st[BB3 + p]
-                v_a = (f0 * tn - b0 * ra) * v0 + (f1 * tn - b1 * ra) * v1 \
-                    + (f2 * tn - b2 * ra) * v2 + (f3 * tn - b3 * ra) * v3 \
-                    + st[BTF + p] * ra * st[BVA + p]
+                fv = f0 * v0 + f1 * v1 + f2 * v2 + f3 * v3
+                sb = st[BS + p]
+                # = sum_k (f_k tn - b_k ra) v_k + T_final ra dL/dalpha
+                v_a = tn * fv - ra * (sb - st[BTVA + p])
                 st[GF0 + j] += fac * v0
                 st[GF1 + j] += fac * v1
                 st[GF2 + j] += fac * v2
                 st[GF3 + j] += fac * v3
-                st[BB0 + p] = b0 + fac * f0
-                st[BB1 + p] = b1 + fac * f1
-                st[BB2 + p] = b2 + fac * f2
-                st[BB3 + p] = b3 + fac * f3
+                st[BS + p] = sb + fac * fv
                 st[BT + p] = tn
                 v_sigma = -raw * v_a if (ok & (raw <= amax)) else F0
-                st[GX + j] += v_sigma * (ca * dx + cb * dy)
-                st[GY + j] += v_sigma * (cb * dx + cc * dy)
+                # sums of v_sigma dx, v_sigma dy: the conic is applied once per Gaussian
+                st[GX + j] += v_sigma * dx
+                st[GY + j] += v_sigma * dy
                 st[GA + j] += v_sigma * dx * dx
                 st[GB + j] += v_sigma * dx * dy
                 st[GC + j] += v_sigma * dy * dy
@@ -512,8 +519,8 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
             g_f1 += st[GF1 + j]
             g_f2 += st[GF2 + j]
             g_f3 += st[GF3 + j]
-        v_isect[k, 0] = g_x
-        v_isect[k, 1] = g_y
+        v_isect[k, 0] = ca * g_x + cb * g_y
+        v_isect[k, 1] = cb * g_x + cc * g_y
         v_isect[k, 2] = FHALF * g_a
         v_isect[k, 3] = g_b
         v_isect[k, 4] = FHALF * g_c
