@@ -487,3 +487,24 @@ def test_numba_cache_is_per_import_name(tmp_path, monkeypatch):
 def test_warmup_runs_a_tiny_render():
     from engine.raster import warmup
     assert warmup("cpu" if raster_cpu.available() else "torch") >= 0.0
+
+
+@NEEDS_NUMBA
+def test_depth_order_is_a_stable_argsort_of_the_visible():
+    """The binning's radix sort against numpy's stable argsort: ties (kept in index order),
+    negative depths and -0.0 (a near plane below zero), several cameras, nothing visible."""
+    rng = np.random.default_rng(0)
+    for C, N in [(1, 5000), (3, 700), (2, 0), (1, 1), (2, 9)]:
+        d = (rng.random((C, N)) * 4 + 2).astype(np.float32)
+        if N > 8:
+            d[0, : N // 3] = d[0, 0]
+            d[-1, 3:9] = [-0.5, 0.0, -0.0, -3.0, 1e-30, np.float32(7e37)]
+        r = (rng.random((C * N, 2)) > 0.2).astype(np.int32) * 3
+        got = raster_cpu.depth_order(r, d)
+        vis = r[:, 0].reshape(C, N) > 0
+        ref = [np.flatnonzero(vis[c])[np.argsort(d[c][vis[c]], kind="stable")] + c * N
+               for c in range(C)]
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, np.concatenate(ref) if ref else np.zeros(0))
+    none = raster_cpu.depth_order(np.zeros((4, 2), np.int32), np.ones((1, 4), np.float32))
+    assert none.shape == (0,)
