@@ -515,7 +515,7 @@ def test_depth_order_is_a_stable_argsort_of_the_visible():
 def test_backward_kernels_write_every_intersection_row(tile_size):
     """The per-intersection gradient buffer is allocated uninitialised: the backward kernels
     must write every row, zeros for Gaussians behind a tile's last contributor (saturated
-    pixels), or the parallel gather would add garbage to the Gaussians' gradients."""
+    pixels), or the gradient scatter would add garbage to the Gaussians' gradients."""
     sc = make_scene(N=300, W=24, H=16, seed=12, scale=0.15, spread=0.6)
     sc["opacities"] = sc["opacities"].clamp_min(0.5)
     proj = raster_cpu.project(sc["means"], sc["quats"], sc["scales"], sc["opacities"],
@@ -524,7 +524,7 @@ def test_backward_kernels_write_every_intersection_row(tile_size):
     ops = sc["opacities"][None].float()
     binning = raster_cpu.bin_gaussians(proj.means2d, proj.conics, ops, proj.radii_xy,
                                        proj.depths, 24, 16, tile_size)
-    offsets, ids, spans, tx, ty, _ = binning
+    offsets, ids, spans, tx, ty = binning
     k = raster_cpu._load()
     packed = np.empty((ids.shape[0], 10), np.float32)
     n = proj.means2d.shape[1]

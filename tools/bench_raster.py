@@ -40,7 +40,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--breakdown", action="store_true",
                         help="also time each stage of the cpu forward+backward (wall and CPU "
                              "time: projection, binning, depth sort, pack, compositing, "
-                             "gradient gather, torch glue)")
+                             "gradient scatter, torch glue)")
     parser.add_argument("--counts", default=None,
                         help="comma list of Gaussian counts (default 2000,10000,50000)")
 

@@ -30,7 +30,7 @@ STAGES = [
     ("kernels", "pack", "pack", None),
     ("kernels", "rasterize_fwd", "composite fwd", None),
     ("kernels", "rasterize_bwd", "composite bwd", None),
-    ("kernels", "gather_grads", "gradient gather", None),
+    ("kernels", "scatter_grads", "gradient scatter", None),
     ("kernels", "project_bwd", "projection bwd", None),
 ]
 

@@ -174,11 +174,8 @@ def bin_gaussians(means2d, conics, opac, radii_xy, order, n_per_cam, n_cams, til
     """Tile lists. means2d [G,2], conics [G,3], opac [G], radii_xy [G,2] int32, order [V]
     int64: visible flat indices sorted by (camera, depth). A tile gets a Gaussian only if
     the Gaussian's alpha >= 1/255 ellipse covers one of its pixel centres (exact, not the
-    bounding box). Returns offsets [C*T+1] int64, ids [M] int32 (front to back per tile),
-    spans [M] int32: the tile rows r0 | r1 << 8 that the Gaussian reaches, and the
-    inverse map for ``gather_grads``: order[k]'s intersections are ids[pos[m]] for m in
-    slot_start[k] .. slot_start[k] + slot_count[k] (pos [*] int32, slot_start [V+1],
-    slot_count [V] int64)."""
+    bounding box). Returns offsets [C*T+1] int64, ids [M] int32 (front to back per tile)
+    and spans [M] int32: the tile rows r0 | r1 << 8 that the Gaussian reaches."""
     n_tiles = tiles_x * tiles_y
     V = order.shape[0]
     # pass 1: bounding-box tile counts (an upper bound) -> slots per Gaussian
@@ -207,7 +204,6 @@ def bin_gaussians(means2d, conics, opac, radii_xy, order, n_per_cam, n_cams, til
     M = offsets[-1]
     ids = np.empty(M, np.int32)
     spans = np.empty(M, np.int32)
-    pos = np.empty(ub[V], np.int32)
     for k in range(V):
         g = order[k]
         for m in range(ub[k], ub[k] + cnt[k]):
@@ -215,9 +211,8 @@ def bin_gaussians(means2d, conics, opac, radii_xy, order, n_per_cam, n_cams, til
             j = fill[t]
             ids[j] = g
             spans[j] = span_of[m]
-            pos[m] = j
             fill[t] = j + 1
-    return offsets, ids, spans, pos, ub, cnt
+    return offsets, ids, spans
 
 
 _F = np.float32
@@ -491,7 +486,7 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
             st[BV1 + p] = v_feat[c, py, px, 1]
             st[BV2 + p] = v_feat[c, py, px, 2]
             st[BV3 + p] = v_feat[c, py, px, 3]
-    for k in range(s + i_max + 1, s + n):  # never composited here: no gradient
+    for k in range(s + i_max + 1, s + n):  # never composited here: zero gradient
         for j in range(v_isect.shape[1]):
             v_isect[k, j] = F0
     for i in range(i_max, -1, -1):
@@ -655,7 +650,7 @@ def _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
             v1[p] = v_feat[c, py, px, 1]
             v2[p] = v_feat[c, py, px, 2]
             v3[p] = v_feat[c, py, px, 3]
-    for k in range(s + i_max + 1, s + n):  # never composited here: no gradient
+    for k in range(s + i_max + 1, s + n):  # never composited here: zero gradient
         for j in range(v_isect.shape[1]):
             v_isect[k, j] = F0
     for i in range(i_max, -1, -1):
@@ -764,19 +759,16 @@ def pack(means2d, conics, opac, feats, ids, packed):
         packed[k, 9] = feats[g, 3]
 
 
-@njit(parallel=True, cache=True)
-def gather_grads(order, slot_start, slot_count, pos, v_isect, v_gauss):
-    """v_gauss[g] = sum of v_isect over g's intersections, for g = order[k] (the rest of
-    v_gauss [G, 6+D] is left as it is: zero-filled by the caller). Parallel over Gaussians
-    through ``bin_gaussians``' inverse map, so no two threads write one row (a scatter
-    v_gauss[ids[k]] += v_isect[k] has to run serially)."""
+@njit(cache=True, nogil=True)
+def scatter_grads(ids, v_isect, v_gauss):
+    """v_gauss[ids[k]] += v_isect[k] (v_gauss [G, 6+D], zero-filled). Serial: a parallel
+    gather per Gaussian through an inverse map measured 2.6x the CPU time (random reads of
+    v_isect rows instead of one sequential pass)."""
     K = v_isect.shape[1]
-    for k in prange(order.shape[0]):
-        g = order[k]
-        for m in range(slot_start[k], slot_start[k] + slot_count[k]):
-            r = pos[m]
-            for j in range(K):
-                v_gauss[g, j] += v_isect[r, j]
+    for k in range(ids.shape[0]):
+        g = ids[k]
+        for j in range(K):
+            v_gauss[g, j] += v_isect[k, j]
 
 
 # ------------------------------------------------------------------------------ projection

@@ -41,20 +41,18 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
                   radii_xy: torch.Tensor, depths: torch.Tensor, width: int, height: int,
                   tile_size: int):
     """Tile lists for all cameras: offsets [C*T+1] int64, ids [M] int32 (flat c*N+g, front
-    to back per tile), spans [M] int32 (reachable tile rows), tiles_x, tiles_y, and
-    (order, slot_start, slot_count, pos): each visible Gaussian's intersections, for the
-    parallel gradient gather (``_kernels.gather_grads``)."""
+    to back per tile), spans [M] int32 (reachable tile rows), tiles_x, tiles_y."""
     k = _load()
     C, N = depths.shape
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     rxy = _np(radii_xy).reshape(C * N, 2)
     order = depth_order(rxy, _np(depths).reshape(C, N))
-    offsets, ids, spans, pos, slot_start, slot_count = k.bin_gaussians(
+    offsets, ids, spans = k.bin_gaussians(
         _np(means2d).reshape(C * N, 2), _np(conics).reshape(C * N, 3),
         _np(opacities).reshape(C * N), rxy, order, N, C, tile_size, tiles_x, tiles_y,
         width, height)
-    return offsets, ids, spans, tiles_x, tiles_y, (order, slot_start, slot_count, pos)
+    return offsets, ids, spans, tiles_x, tiles_y
 
 
 class _RasterizeToPixels(torch.autograd.Function):
@@ -66,7 +64,7 @@ class _RasterizeToPixels(torch.autograd.Function):
                 alpha_max):
         k = _load()
         C, N, D = feats.shape
-        offsets, ids, spans, tiles_x, tiles_y, inverse = binning
+        offsets, ids, spans, tiles_x, tiles_y = binning
         out_feat = np.zeros((C, height, width, D), np.float32)
         out_alpha = np.zeros((C, height, width), np.float32)
         final_t = np.ones((C, height, width), np.float32)
@@ -79,7 +77,7 @@ class _RasterizeToPixels(torch.autograd.Function):
                             tiles_y, float(alpha_max), out_feat, out_alpha, final_t, last_i)
         ctx.save_for_backward(means2d, conics, opacities, feats)
         ctx.packed = packed
-        ctx.state = (offsets, ids, spans, tiles_x, tiles_y, inverse, final_t, last_i, width, height,
+        ctx.state = (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, width, height,
                      tile_size, float(alpha_max))
         return torch.from_numpy(out_feat), torch.from_numpy(out_alpha)[..., None]
 
@@ -88,7 +86,7 @@ class _RasterizeToPixels(torch.autograd.Function):
     def backward(ctx, v_feat, v_alpha):
         k = _load()
         means2d, conics, opacities, feats = ctx.saved_tensors
-        (offsets, ids, spans, tiles_x, tiles_y, inverse, final_t, last_i, width, height, tile_size,
+        (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, width, height, tile_size,
          alpha_max) = ctx.state
         C, N, D = feats.shape
         M = ids.shape[0]
@@ -103,7 +101,7 @@ class _RasterizeToPixels(torch.autograd.Function):
             k.rasterize_bwd(ctx.packed, spans, offsets, C, height, width, tile_size, tiles_x,
                             tiles_y, alpha_max, final_t, last_i, _np(v_feat.float()),
                             _np(v_alpha.float()).reshape(C, height, width), v_isect)
-            k.gather_grads(*inverse, v_isect, v_gauss)
+            k.scatter_grads(ids, v_isect, v_gauss)
         vg = torch.from_numpy(v_gauss).reshape(C, N, n_grad)
         return (vg[..., 0:2], vg[..., 2:5], vg[..., 5], vg[..., k.N_GRAD:],
                 None, None, None, None, None)
