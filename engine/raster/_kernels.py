@@ -64,7 +64,7 @@ def _ellipse_yspan(mx, my, usable, xe, ye, two_lc, det, inv_c, nb_c, t, xa, xb):
     return my + lo - 1e-3, my + hi + 1e-3
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")  # a call per Gaussian passed ~15 arguments
 def _visit(g, means2d, conics, opac, radii_xy, tile_size, tiles_x, tiles_y, width, height,
            base, write, at, tile_out, span_out):
     """Tiles (and, per tile, the rows [r0, r1)) that Gaussian g can reach with alpha >= 1/255.
