@@ -852,7 +852,9 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
                              far, eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+# inlined: a call per Gaussian passing ~20 arguments (arrays are structs) cost a third of the
+# projection (measured 5.8 -> 3.9 ms forward, 8.3 -> 5.5 ms backward at 50k Gaussians)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _project_one_fwd(n, means, quats, scales, opac, viewmats, cams, width, height, near, far,
                      eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M):
     C = viewmats.shape[0]
@@ -942,7 +944,7 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
                              Rq, M, gM, G, a, b, T0, T1)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")  # see _project_one_fwd
 def _project_one_bwd(n, means, quats, scales, viewmats, cams, width, height, near, far, eps2d,
                      v_m2d, v_conic, v_z, v_means, v_quats, v_scales, Rq, M, gM, G, a, b, T0, T1):
     C = viewmats.shape[0]
