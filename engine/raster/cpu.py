@@ -77,8 +77,8 @@ class _RasterizeToPixels(torch.autograd.Function):
                             tiles_y, float(alpha_max), out_feat, out_alpha, final_t, last_i)
         ctx.save_for_backward(means2d, conics, opacities, feats)
         ctx.packed = packed
-        ctx.state = (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, width, height,
-                     tile_size, float(alpha_max))
+        ctx.state = (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, width, height, tile_size,
+                     float(alpha_max))
         return torch.from_numpy(out_feat), torch.from_numpy(out_alpha)[..., None]
 
     @staticmethod
@@ -86,8 +86,7 @@ class _RasterizeToPixels(torch.autograd.Function):
     def backward(ctx, v_feat, v_alpha):
         k = _load()
         means2d, conics, opacities, feats = ctx.saved_tensors
-        (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, width, height, tile_size,
-         alpha_max) = ctx.state
+        offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, width, height, tile_size, alpha_max = ctx.state
         C, N, D = feats.shape
         M = ids.shape[0]
         n_grad = k.N_GRAD + D
