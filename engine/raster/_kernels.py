@@ -32,9 +32,9 @@ N_GRAD = 6  # per-intersection gradient slots before the features: mx, my, ca, c
 @njit(cache=True, nogil=True, inline="always")
 def _ellipse_setup(A, B, C, L):
     """Per-Gaussian constants of the ellipse 0.5 [dx dy] [[A B] [B C]] [dx dy]^T <= L for
-    ``_ellipse_yspan`` (computed once per Gaussian, not once per tile column: the square
-    roots and divisions were most of the binning's time): (usable, x half-width xe,
-    y half-height ye, 2 L C, det, 1 / C, -B / C, dx of the topmost point)."""
+    ``_ellipse_yspan``, computed once per Gaussian rather than once per tile column:
+    (usable, x half-width xe, y half-height ye, 2 L C, det, 1 / C, -B / C, dx of the
+    topmost point)."""
     det = A * C - B * B
     if not (det > 0.0 and A > 0.0 and C > 0.0 and L > 0.0):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -123,7 +123,8 @@ def depth_order(radii_xy, depth_bits):
     """Flat indices c * N + g [V] int64 of the visible Gaussians (radii_xy [C*N,2] int32,
     x radius > 0), sorted by camera, then depth, stable (ties keep index order).
     depth_bits [C,N] uint32: the float32 depths' bit patterns. An LSD radix sort (4 passes
-    of 8 bits) of order-preserving keys: ~10x faster than numpy's argsort of 44k depths."""
+    of 8 bits) of order-preserving keys: 1.2 ms for 44k depths against 2.9 ms for the
+    numpy argsort of int64 (bits, index) keys it replaces."""
     C, N = depth_bits.shape
     V = 0
     for i in range(C * N):
@@ -147,6 +148,8 @@ def depth_order(radii_xy, depth_bits):
                 keys[at + n] = ~b if (b >> np.uint32(31)) != 0 else b | np.uint32(0x80000000)
                 order[at + n] = c * N + g
                 n += 1
+        if n == 0:
+            continue
         for sh in range(0, 32, 8):
             shift = np.uint32(sh)
             hist[:] = 0
