@@ -487,3 +487,56 @@ def test_numba_cache_is_per_import_name(tmp_path, monkeypatch):
 def test_warmup_runs_a_tiny_render():
     from engine.raster import warmup
     assert warmup("cpu" if raster_cpu.available() else "torch") >= 0.0
+
+
+@NEEDS_NUMBA
+def test_depth_order_is_a_stable_argsort_of_the_visible():
+    """The binning's radix sort against numpy's stable argsort: ties (kept in index order),
+    negative depths and -0.0 (a near plane below zero), several cameras, nothing visible."""
+    rng = np.random.default_rng(0)
+    for C, N in [(1, 5000), (3, 700), (2, 0), (1, 1), (2, 9)]:
+        d = (rng.random((C, N)) * 4 + 2).astype(np.float32)
+        if N > 8:
+            d[0, : N // 3] = d[0, 0]
+            d[-1, 3:9] = [-0.5, 0.0, -0.0, -3.0, 1e-30, np.float32(7e37)]
+        r = (rng.random((C * N, 2)) > 0.2).astype(np.int32) * 3
+        got = raster_cpu.depth_order(r, d)
+        vis = r[:, 0].reshape(C, N) > 0
+        ref = [np.flatnonzero(vis[c])[np.argsort(d[c][vis[c]], kind="stable")] + c * N
+               for c in range(C)]
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, np.concatenate(ref) if ref else np.zeros(0))
+    none = raster_cpu.depth_order(np.zeros((4, 2), np.int32), np.ones((1, 4), np.float32))
+    assert none.shape == (0,)
+
+
+@NEEDS_NUMBA
+@pytest.mark.parametrize("tile_size", [8, 16])
+def test_backward_kernels_write_every_intersection_row(tile_size):
+    """The per-intersection gradient buffer is allocated uninitialised: the backward kernels
+    must write every row, zeros for Gaussians behind a tile's last contributor (saturated
+    pixels), or the gradient scatter would add garbage to the Gaussians' gradients."""
+    sc = make_scene(N=300, W=24, H=16, seed=12, scale=0.15, spread=0.6)
+    sc["opacities"] = sc["opacities"].clamp_min(0.5)
+    proj = raster_cpu.project(sc["means"], sc["quats"], sc["scales"], sc["opacities"],
+                              sc["viewmats"], sc["Ks"], 24, 16)
+    feats = torch.cat([sc["colors"][None], proj.depths[..., None]], -1).float().contiguous()
+    ops = sc["opacities"][None].float()
+    binning = raster_cpu.bin_gaussians(proj.means2d, proj.conics, ops, proj.radii_xy,
+                                       proj.depths, 24, 16, tile_size)
+    offsets, ids, spans, tx, ty = binning
+    k = raster_cpu._load()
+    packed = np.empty((ids.shape[0], 10), np.float32)
+    n = proj.means2d.shape[1]
+    k.pack(proj.means2d.detach().numpy().reshape(n, 2), proj.conics.detach().numpy().reshape(n, 3),
+           ops.numpy().reshape(n), feats.numpy().reshape(n, 4), ids, packed)
+    out_f, out_a = np.zeros((1, 16, 24, 4), np.float32), np.zeros((1, 16, 24), np.float32)
+    final_t, last_i = np.ones((1, 16, 24), np.float32), np.full((1, 16, 24), -1, np.int32)
+    k.rasterize_fwd(packed, spans, offsets, 1, 16, 24, tile_size, tx, ty, 0.99, out_f, out_a,
+                    final_t, last_i)
+    assert (last_i[0] + 1 < np.diff(offsets)[np.arange(16)[:, None] // tile_size * tx
+                                             + np.arange(24)[None] // tile_size]).any()
+    v_isect = np.full((ids.shape[0], 10), np.nan, np.float32)
+    k.rasterize_bwd(packed, spans, offsets, 1, 16, 24, tile_size, tx, ty, 0.99, final_t, last_i,
+                    np.ones((1, 16, 24, 4), np.float32), np.ones((1, 16, 24), np.float32), v_isect)
+    assert np.isfinite(v_isect).all()

@@ -37,6 +37,12 @@ def add_arguments(parser) -> None:
                         help="use an empty numba cache dir to time a cold JIT compile")
     parser.add_argument("--sh-degree", type=int, default=None, help="colours as SH of this degree")
     parser.add_argument("--size", default=None, help="only this image size, e.g. 320x240")
+    parser.add_argument("--breakdown", action="store_true",
+                        help="also time each stage of the cpu forward+backward (wall and CPU "
+                             "time: projection, binning, depth sort, pack, compositing, "
+                             "gradient scatter, torch glue)")
+    parser.add_argument("--counts", default=None,
+                        help="comma list of Gaussian counts (default 2000,10000,50000)")
 
 
 def make_scene(n, width, height, seed=0, sh_degree=None):
@@ -121,6 +127,8 @@ def main(args) -> int:
         w, h = (int(v) for v in args.size.lower().split("x"))
         sizes = [(w, h)]
     counts = COUNTS[:2] if args.quick else COUNTS
+    if args.counts:
+        counts = [int(v) for v in args.counts.split(",") if v.strip()]
     repeats = 2 if args.quick else max(1, args.repeats)
 
     if "cpu" in backends:
@@ -188,4 +196,10 @@ def main(args) -> int:
     print(f"load average start/end: {load0[0]:.2f} / {load1[0]:.2f}; "
           f"reference = dense, only where pixels x N <= {DENSE_LIMIT:.0e}; torch = tiled "
           f"plain-PyTorch autograd baseline")
+    if args.breakdown and "cpu" in backends:
+        from . import raster_breakdown  # lazy: only with --breakdown
+
+        raster_breakdown.run(make_scene, sizes, counts, repeats, sh_degree=args.sh_degree)
+        load2 = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+        print(f"load average after the breakdown: {load2[0]:.2f}")
     return 0

@@ -30,30 +30,41 @@ N_GRAD = 6  # per-intersection gradient slots before the features: mx, my, ca, c
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ellipse_yspan(mx, my, A, B, C, L, xa, xb):
-    """y-interval (lo, hi) of the ellipse 0.5 [dx dy] [[A B] [B C]] [dx dy]^T <= L over the
-    x-band xa <= x <= xb (lo > hi: the band misses it). Exact: the top / bottom of the band's
-    slice is the ellipse's own top / bottom when that lies in the band, else a band edge."""
+def _ellipse_setup(A, B, C, L):
+    """Per-Gaussian constants of the ellipse 0.5 [dx dy] [[A B] [B C]] [dx dy]^T <= L for
+    ``_ellipse_yspan``, computed once per Gaussian rather than once per tile column:
+    (usable, x half-width xe, y half-height ye, 2 L C, det, 1 / C, -B / C, dx of the
+    topmost point)."""
     det = A * C - B * B
     if not (det > 0.0 and A > 0.0 and C > 0.0 and L > 0.0):
-        return -1e30, 1e30  # degenerate: no culling
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     xe = math.sqrt(2.0 * L * C / det)
     ye = math.sqrt(2.0 * L * A / det)
+    inv_c = 1.0 / C
+    return True, xe, ye, 2.0 * L * C, det, inv_c, -B * inv_c, -B * ye / A
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ellipse_yspan(mx, my, usable, xe, ye, two_lc, det, inv_c, nb_c, t, xa, xb):
+    """y-interval (lo, hi) of the ellipse (constants from ``_ellipse_setup``) over the x-band
+    xa <= x <= xb (lo > hi: the band misses it). Exact: the top / bottom of the band's
+    slice is the ellipse's own top / bottom when that lies in the band, else a band edge."""
+    if not usable:
+        return -1e30, 1e30  # degenerate: no culling
     da = max(xa - mx, -xe)
     db = min(xb - mx, xe)
     if da > db:
         return 1.0, -1.0
-    ra = math.sqrt(max(2.0 * L * C - det * da * da, 0.0)) / C
-    rb = math.sqrt(max(2.0 * L * C - det * db * db, 0.0)) / C
-    ca = -B * da / C
-    cb = -B * db / C
-    t = -B * ye / A  # dx of the topmost point (dy = +ye); the bottom one is at -t
+    ra = math.sqrt(max(two_lc - det * da * da, 0.0)) * inv_c
+    rb = math.sqrt(max(two_lc - det * db * db, 0.0)) * inv_c
+    ca = nb_c * da
+    cb = nb_c * db
     hi = ye if (da <= t and t <= db) else max(ca + ra, cb + rb)
     lo = -ye if (da <= -t and -t <= db) else min(ca - ra, cb - rb)
     return my + lo - 1e-3, my + hi + 1e-3
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")  # a call per Gaussian passed ~15 arguments
 def _visit(g, means2d, conics, opac, radii_xy, tile_size, tiles_x, tiles_y, width, height,
            base, write, at, tile_out, span_out):
     """Tiles (and, per tile, the rows [r0, r1)) that Gaussian g can reach with alpha >= 1/255.
@@ -67,11 +78,12 @@ def _visit(g, means2d, conics, opac, radii_xy, tile_size, tiles_x, tiles_y, widt
     A = np.float64(conics[g, 0])
     B = np.float64(conics[g, 1])
     C = np.float64(conics[g, 2])
+    usable, xe, ye, two_lc, det, inv_c, nb_c, t = _ellipse_setup(A, B, C, L)
     n = 0
     for tx in range(x0, x1):
         xa = tx * tile_size + 0.5
         xb = min((tx + 1) * tile_size, width) - 0.5
-        lo, hi = _ellipse_yspan(mx, my, A, B, C, L, xa, xb)
+        lo, hi = _ellipse_yspan(mx, my, usable, xe, ye, two_lc, det, inv_c, nb_c, t, xa, xb)
         lo = max(lo, my - ry)
         hi = min(hi, my + ry)
         if lo > hi:
@@ -104,6 +116,59 @@ def _bbox_tiles(g, means2d, radii_xy, tile_size, tiles_x, tiles_y):
     y0 = int(min(max(math.floor((my - ry - 0.5) / tile_size), 0.0), tiles_y))
     y1 = int(min(max(math.floor((my + ry - 0.5) / tile_size) + 1.0, 0.0), tiles_y))
     return x0, x1, y0, y1
+
+
+@njit(cache=True, nogil=True)
+def depth_order(radii_xy, depth_bits):
+    """Flat indices c * N + g [V] int64 of the visible Gaussians (radii_xy [C*N,2] int32,
+    x radius > 0), sorted by camera, then depth, stable (ties keep index order).
+    depth_bits [C,N] uint32: the float32 depths' bit patterns. An LSD radix sort (4 passes
+    of 8 bits) of order-preserving keys: 1.2 ms for 44k depths against 2.9 ms for the
+    numpy argsort of int64 (bits, index) keys it replaces."""
+    C, N = depth_bits.shape
+    V = 0
+    for i in range(C * N):
+        if radii_xy[i, 0] > 0:
+            V += 1
+    order = np.empty(V, np.int64)
+    tmp = np.empty(V, np.int64)
+    keys = np.empty(V, np.uint32)
+    ktmp = np.empty(V, np.uint32)
+    hist = np.empty(257, np.int64)
+    at = 0
+    for c in range(C):
+        n = 0
+        for g in range(N):
+            if radii_xy[c * N + g, 0] > 0:
+                b = depth_bits[c, g]
+                if b == np.uint32(0x80000000):
+                    b = np.uint32(0)  # -0.0 ties with 0.0, as in a float sort
+                # float order -> unsigned order: flip negatives entirely, set the sign bit
+                # of the others
+                keys[at + n] = ~b if (b >> np.uint32(31)) != 0 else b | np.uint32(0x80000000)
+                order[at + n] = c * N + g
+                n += 1
+        if n == 0:
+            continue
+        for sh in range(0, 32, 8):
+            shift = np.uint32(sh)
+            hist[:] = 0
+            for m in range(at, at + n):
+                hist[np.int64((keys[m] >> shift) & np.uint32(255)) + 1] += 1
+            if hist[np.int64((keys[at] >> shift) & np.uint32(255)) + 1] == n:
+                continue  # every key has this digit: the pass would not move anything
+            for d in range(1, 257):
+                hist[d] += hist[d - 1]
+            for m in range(at, at + n):
+                d = np.int64((keys[m] >> shift) & np.uint32(255))
+                j = at + hist[d]
+                hist[d] += 1
+                ktmp[j] = keys[m]
+                tmp[j] = order[m]
+            keys[at:at + n] = ktmp[at:at + n]
+            order[at:at + n] = tmp[at:at + n]
+        at += n
+    return order
 
 
 @njit(parallel=True, cache=True)
@@ -339,17 +404,25 @@ def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
                 q = min(max(power, F0), F_QMAX)
                 alpha = min(amax, op * exp_neg(q))
                 tp = st[ST + p]
+                act = st[SACT + p]
                 nt = tp * (F1 - alpha)
-                ok = (power >= F0) and (alpha >= F_THR) and (st[SACT + p] != F0)
-                use = ok and (nt > F_STOP)
-                w = alpha * tp if use else F0
+                # `&`, not `and`: no short circuit, so no conditional loads; every state
+                # update is an exact arithmetic blend with a 0 / 1 mask rather than a
+                # select of the old value, which LLVM turned into vmaskmovps stores
+                # (microcoded on AMD Zen: they cost more than the exp)
+                okf = F1 if ((power >= F0) & (alpha >= F_THR)) else F0
+                okf = okf * act  # act is 0 or 1
+                usef = okf if nt > F_STOP else F0
+                au = alpha * usef  # alpha where it is composited, else exactly 0
+                w = au * tp
                 st[SA0 + p] += w * f0
                 st[SA1 + p] += w * f1
                 st[SA2 + p] += w * f2
                 st[SA3 + p] += w * f3
-                st[ST + p] = nt if use else tp
-                st[SLAST + p] = fi if use else st[SLAST + p]
-                st[SACT + p] = F0 if (ok and not use) else st[SACT + p]
+                st[ST + p] = tp * (F1 - au)  # nt where used, tp exactly otherwise
+                last = st[SLAST + p]
+                st[SLAST + p] = last + (fi - last) * usef  # small integers: exact
+                st[SACT + p] = act - okf + usef  # 0 where ok and not used, else unchanged
         if (i & 3) == 3:  # any pixel still open? (checked every 4th Gaussian: cheaper)
             any_act = False
             for p in range(TS2):
@@ -371,9 +444,16 @@ def _fwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
             last_i[c, py, px] = np.int32(st[SLAST + p])
 
 
-# backward state slots: pixel x, y, transmittance, final transmittance, last index, dL/dalpha,
-# dL/dfeature 0..3, features composited behind (b0..b3)
-BPX, BPY, BT, BTF, BLAST, BVA, BV0, BV1, BV2, BV3, BB0, BB1, BB2, BB3 = [j * TS2 for j in range(14)]
+# backward state slots: pixel x, y, transmittance, last index, final transmittance times
+# dL/dalpha, dL/dfeature 0..3, and S = sum_k b_k dL/dfeature_k where b_k is feature k
+# composited behind the current Gaussian. dL/dalpha_i needs the b_k only through S, so S
+# is carried instead of b_0..b_3 (4 loads, 4 stores and 4 FMAs less per tile row).
+BPX, BPY, BT, BLAST, BTVA, BV0, BV1, BV2, BV3, BS = [j * TS2 for j in range(10)]
+# then, after them, one Gaussian's per-lane gradient sums (TS lanes each): mean x, y, conic
+# a, b, c, opacity, features 0..3
+GN = 10
+BG = 10 * TS2
+GX, GY, GA, GB, GC, GO, GF0, GF1, GF2, GF3 = [BG + j * TS for j in range(GN)]
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp", "reassoc"})
@@ -389,7 +469,7 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         return
     y0 = ty * TS
     x0 = tx * TS
-    st = np.zeros(14 * TS2, np.float32)
+    st = np.zeros(BG + GN * TS, np.float32)
     i_max = -1
     for p in range(TS2):
         py = y0 + p // TS
@@ -397,20 +477,21 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         st[BPX + p] = _F(px) + FHALF
         st[BPY + p] = _F(py) + FHALF
         st[BT + p] = F1
-        st[BTF + p] = F1
         st[BLAST + p] = _F(-1.0)
         if py < height and px < width:
             tfv = final_t[c, py, px]
             st[BT + p] = tfv
-            st[BTF + p] = tfv
             lp = last_i[c, py, px]
             st[BLAST + p] = _F(lp)
             i_max = max(i_max, lp)
-            st[BVA + p] = v_alpha[c, py, px]
+            st[BTVA + p] = tfv * v_alpha[c, py, px]
             st[BV0 + p] = v_feat[c, py, px, 0]
             st[BV1 + p] = v_feat[c, py, px, 1]
             st[BV2 + p] = v_feat[c, py, px, 2]
             st[BV3 + p] = v_feat[c, py, px, 3]
+    for k in range(s + i_max + 1, s + n):  # never composited here: zero gradient
+        for j in range(v_isect.shape[1]):
+            v_isect[k, j] = F0
     for i in range(i_max, -1, -1):
         k = s + i
         gx = packed[k, 0]
@@ -424,6 +505,55 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         f2 = packed[k, 8]
         f3 = packed[k, 9]
         fi = _F(i)
+        # per-lane gradient sums over the rows, reduced once per Gaussian below (summing
+        # the 8 lanes after every row cost ~40 shuffles and adds per row)
+        for j in range(GN * TS):
+            st[BG + j] = F0
+        sp = spans[k]
+        r0 = sp & 255
+        r1 = sp >> 8
+        for r in range(r0, r1):
+            base = (r & 7) * TS  # (& 7: tells LLVM the row slots never reach the BG slots)
+            for j in range(TS):
+                p = base + j
+                dx = gx - st[BPX + p]
+                dy = gy - st[BPY + p]
+                power = FHALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                q = min(max(power, F0), F_QMAX)
+                vis = exp_neg(q)
+                raw = op * vis
+                alpha = min(amax, raw)
+                # `&`, not `and`: no short circuit, hence no masked (conditional) loads
+                ok = (power >= F0) & (alpha >= F_THR) & (fi <= st[BLAST + p])
+                ra = F1 / (F1 - alpha)
+                tp = st[BT + p]
+                # exact blend (okf is 0 or 1): a select with the loaded tp as one arm became
+                # a masked store (vmaskmovps, microcoded on AMD Zen)
+                okf = F1 if ok else F0
+                tn = tp * (ra * okf + (F1 - okf))
+                fac = alpha * tn if ok else F0
+                v0 = st[BV0 + p]
+                v1 = st[BV1 + p]
+                v2 = st[BV2 + p]
+                v3 = st[BV3 + p]
+                fv = f0 * v0 + f1 * v1 + f2 * v2 + f3 * v3
+                sb = st[BS + p]
+                # = sum_k (f_k tn - b_k ra) v_k + T_final ra dL/dalpha
+                v_a = tn * fv - ra * (sb - st[BTVA + p])
+                st[GF0 + j] += fac * v0
+                st[GF1 + j] += fac * v1
+                st[GF2 + j] += fac * v2
+                st[GF3 + j] += fac * v3
+                st[BS + p] = sb + fac * fv
+                st[BT + p] = tn
+                v_sigma = -raw * v_a if (ok & (raw <= amax)) else F0
+                # sums of v_sigma dx, v_sigma dy: the conic is applied once per Gaussian
+                st[GX + j] += v_sigma * dx
+                st[GY + j] += v_sigma * dy
+                st[GA + j] += v_sigma * dx * dx
+                st[GB + j] += v_sigma * dx * dy
+                st[GC + j] += v_sigma * dy * dy
+                st[GO + j] += v_sigma
         g_x = F0
         g_y = F0
         g_a = F0
@@ -434,54 +564,19 @@ def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, am
         g_f1 = F0
         g_f2 = F0
         g_f3 = F0
-        sp = spans[k]
-        r0 = sp & 255
-        r1 = sp >> 8
-        for r in range(r0, r1):
-            base = r * TS
-            for j in range(TS):
-                p = base + j
-                dx = gx - st[BPX + p]
-                dy = gy - st[BPY + p]
-                power = FHALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                q = min(max(power, F0), F_QMAX)
-                vis = exp_neg(q)
-                raw = op * vis
-                alpha = min(amax, raw)
-                ok = (power >= F0) and (alpha >= F_THR) and (fi <= st[BLAST + p])
-                ra = F1 / (F1 - alpha)
-                tp = st[BT + p]
-                tn = tp * ra if ok else tp
-                fac = alpha * tn if ok else F0
-                v0 = st[BV0 + p]
-                v1 = st[BV1 + p]
-                v2 = st[BV2 + p]
-                v3 = st[BV3 + p]
-                b0 = st[BB0 + p]
-                b1 = st[BB1 + p]
-                b2 = st[BB2 + p]
-                b3 = st[BB3 + p]
-                v_a = (f0 * tn - b0 * ra) * v0 + (f1 * tn - b1 * ra) * v1 \
-                    + (f2 * tn - b2 * ra) * v2 + (f3 * tn - b3 * ra) * v3 \
-                    + st[BTF + p] * ra * st[BVA + p]
-                g_f0 += fac * v0
-                g_f1 += fac * v1
-                g_f2 += fac * v2
-                g_f3 += fac * v3
-                st[BB0 + p] = b0 + fac * f0
-                st[BB1 + p] = b1 + fac * f1
-                st[BB2 + p] = b2 + fac * f2
-                st[BB3 + p] = b3 + fac * f3
-                st[BT + p] = tn
-                v_sigma = -raw * v_a if (ok and raw <= amax) else F0
-                g_x += v_sigma * (ca * dx + cb * dy)
-                g_y += v_sigma * (cb * dx + cc * dy)
-                g_a += v_sigma * dx * dx
-                g_b += v_sigma * dx * dy
-                g_c += v_sigma * dy * dy
-                g_o += v_sigma
-        v_isect[k, 0] = g_x
-        v_isect[k, 1] = g_y
+        for j in range(TS):
+            g_x += st[GX + j]
+            g_y += st[GY + j]
+            g_a += st[GA + j]
+            g_b += st[GB + j]
+            g_c += st[GC + j]
+            g_o += st[GO + j]
+            g_f0 += st[GF0 + j]
+            g_f1 += st[GF1 + j]
+            g_f2 += st[GF2 + j]
+            g_f3 += st[GF3 + j]
+        v_isect[k, 0] = ca * g_x + cb * g_y
+        v_isect[k, 1] = cb * g_x + cc * g_y
         v_isect[k, 2] = FHALF * g_a
         v_isect[k, 3] = g_b
         v_isect[k, 4] = FHALF * g_c
@@ -558,6 +653,9 @@ def _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
             v1[p] = v_feat[c, py, px, 1]
             v2[p] = v_feat[c, py, px, 2]
             v3[p] = v_feat[c, py, px, 3]
+    for k in range(s + i_max + 1, s + n):  # never composited here: zero gradient
+        for j in range(v_isect.shape[1]):
+            v_isect[k, j] = F0
     for i in range(i_max, -1, -1):
         k = s + i  # packed: this tile's Gaussians, contiguous and front to back
         gx = packed[k, 0]
@@ -666,7 +764,9 @@ def pack(means2d, conics, opac, feats, ids, packed):
 
 @njit(cache=True, nogil=True)
 def scatter_grads(ids, v_isect, v_gauss):
-    """v_gauss[ids[k]] += v_isect[k] (v_gauss [G, 6+D], zero-filled)."""
+    """v_gauss[ids[k]] += v_isect[k] (v_gauss [G, 6+D], zero-filled). Serial: a parallel
+    gather per Gaussian through an inverse map measured 2.6x the CPU time (random reads of
+    v_isect rows instead of one sequential pass)."""
     K = v_isect.shape[1]
     for k in range(ids.shape[0]):
         g = ids[k]
@@ -755,7 +855,9 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
                              far, eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+# inlined: a call per Gaussian passing ~20 arguments (arrays are structs) cost a third of the
+# projection (measured 5.8 -> 3.9 ms forward, 8.3 -> 5.5 ms backward at 50k Gaussians)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _project_one_fwd(n, means, quats, scales, opac, viewmats, cams, width, height, near, far,
                      eps2d, out_m2d, out_conic, out_z, out_radii, Rq, M):
     C = viewmats.shape[0]
@@ -845,7 +947,7 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
                              Rq, M, gM, G, a, b, T0, T1)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")  # see _project_one_fwd
 def _project_one_bwd(n, means, quats, scales, viewmats, cams, width, height, near, far, eps2d,
                      v_m2d, v_conic, v_z, v_means, v_quats, v_scales, Rq, M, gM, G, a, b, T0, T1):
     C = viewmats.shape[0]
