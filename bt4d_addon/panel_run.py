@@ -25,6 +25,7 @@ def draw_reconstruction(layout, context) -> None:
     adv = col.column(align=True)
     adv.enabled = not running
     adv.label(text="Advanced")
+    adv.prop(s, "motion")
     adv.prop(s, "freeze_static")
     adv.prop(s, "early_stop")
     row = col.row(align=True)

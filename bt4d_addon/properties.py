@@ -2,8 +2,8 @@
 
 * ``Scene.bt4d``: the capture that was imported and the reconstruction settings. Capture
   summary fields are written by ``bt4d.import_capture``; the reconstruction settings
-  (preset, seconds, output_dir, device, use_spikes, and the advanced switches
-  freeze_static / early_stop) are read by the training operator.
+  (preset, seconds, output_dir, device, use_spikes, and the advanced motion choice and
+  switches freeze_static / early_stop) are read by the training operator.
 * ``Scene.bt4d_run``: the live state of a reconstruction / path render (progress, loss,
   PSNR, ETA, status) and the metrics of the last run, which the operators update from the
   main thread (``panel_run.py`` draws it).
@@ -18,6 +18,16 @@ PRESET_ITEMS = (
     ("fast", "Fast", "Few iterations, small model: a first look in minutes"),
     ("balanced", "Balanced", "The default trade-off between time and quality"),
     ("quality", "Quality", "More iterations and Gaussians; best results, slowest"),
+)
+MOTION_ITEMS = (  # engine.train.presets.TrainConfig.motion; the first is the engine's default
+    ("trajectory", "Per-Gaussian Curves",
+     "Every Gaussian follows its own cubic Bezier curve through the RGB instants (E-NeMF): "
+     "fast objects stay sharp; the spike stream bends the curves between frames"),
+    ("hexplane", "HexPlane Field",
+     "A shared HexPlane deformation field with the spike fine branch (the paper's Eq. 6-10): "
+     "smoother, but fast objects can turn into ghosts"),
+    ("trajectory+hexplane", "Curves + Field",
+     "Per-Gaussian curves with a HexPlane field as a residual on top (slowest)"),
 )
 DEVICE_ITEMS = (
     ("auto", "Auto", "CUDA when torch sees a GPU, otherwise the CPU"),
@@ -57,7 +67,10 @@ class BT4D_SceneSettings(PropertyGroup):
     use_spikes: BoolProperty(
         name="Use Spikes", default=True,
         description="Train the fine (spike-guided) deformation branch when the capture has a spike stream")
-    # -- advanced: skipping what the scene does not need (engine.train switches) ----------
+    # -- advanced: motion representation and skipping what the scene does not need ----------
+    motion: EnumProperty(
+        name="Motion", items=MOTION_ITEMS, default=MOTION_ITEMS[0][0],
+        description="How the Gaussians move over time (engine TrainConfig.motion)")
     freeze_static: BoolProperty(
         name="Freeze Static Gaussians", default=False,
         description="Gaussians that do not move stop using the deformation field (CPOStream freezing): "

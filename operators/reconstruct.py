@@ -40,6 +40,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from bpy.types import Operator
 
 from ..bt4d_addon import worker
+from ..bt4d_addon.properties import MOTION_ITEMS
 from . import load_result
 
 KIND = "reconstruct"
@@ -71,8 +72,12 @@ def resolve_run_dir(scene) -> str:
 
 
 def skip_overrides(settings) -> dict:
-    """The advanced switches of ``scene.bt4d`` as training overrides (only those turned on)."""
+    """The advanced settings of ``scene.bt4d`` as training overrides (only those that differ
+    from the engine's defaults: a switch turned on, a motion other than the first item)."""
     out = {}
+    motion = getattr(settings, "motion", MOTION_ITEMS[0][0])
+    if motion != MOTION_ITEMS[0][0]:
+        out["motion"] = str(motion)
     if getattr(settings, "freeze_static", False):
         out["freeze_static"] = True
     if getattr(settings, "early_stop", False):

@@ -202,7 +202,7 @@ def test_skip_variants_with_the_real_trainer(tmp_path):
     ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
           "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,
           "freeze_motion_eps_px": 100.0, "early_stop_min_deform_fraction": 0.0, "early_stop_patience": 1,
-          "early_stop_min_delta": 100.0}
+          "early_stop_min_delta": 100.0, "motion": "hexplane"}  # freezing skips the HexPlane field
     for variant in ("freeze", "early_stop", "cull"):
         r = bench.run_one(capture, tmp_path, "fast", variant, seconds=None, eval_every_s=100.0, overrides=ov,
                           flicker=False, evaluate_fn=lambda run, cap: {"psnr": 0.0})

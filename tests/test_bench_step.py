@@ -20,7 +20,8 @@ def capture(tmp_path_factory):
 
 def test_step_profile_charges_every_part_and_restores_the_patches(capture):
     before = (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward)
-    prof, counts = bench_step.profile_runs(capture, 12, overrides={"init": "ply", "static_fraction": 0.25},
+    prof, counts = bench_step.profile_runs(capture, 12, overrides={"init": "ply", "static_fraction": 0.25,
+                                                                           "motion": "hexplane"},
                                            spike=False)
     assert (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward) == before
     static, deform = prof.table("static"), prof.table("rgb_deform")
@@ -50,7 +51,8 @@ def test_variants_profile_both_code_paths_in_one_process(capture, monkeypatch):
         return real(self, xyzt)
 
     monkeypatch.setattr(HexPlane, "forward", spy)
-    profs, counts = bench_step.compare_runs(capture, 8, overrides={"init": "ply", "static_fraction": 0.25},
+    profs, counts = bench_step.compare_runs(capture, 8, overrides={"init": "ply", "static_fraction": 0.25,
+                                                                   "motion": "hexplane"},
                                             spike=False, variants=("reference", "current"))
     assert set(profs) == {"reference", "current"} and HexPlane.sampler == "auto"  # restored
     assert {"torch", "auto"} <= set(seen)

@@ -220,8 +220,8 @@ def test_sidebar_draws_every_state(scene):
 
 
 def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, tmp_path, monkeypatch):
-    """"Freeze Static Gaussians" / "Stop Early" (scene.bt4d) become the training overrides
-    freeze_static / early_stop; off, nothing is passed."""
+    """"Freeze Static Gaussians" / "Stop Early" / "Motion" (scene.bt4d) become the training
+    overrides freeze_static / early_stop / motion; off (or the default motion), nothing is passed."""
     worker = roundtrip_util.addon_module("bt4d_addon.worker")
     calls = []
 
@@ -244,5 +244,14 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s.freeze_static = False
     assert bpy.ops.bt4d.reconstruct() == {"FINISHED"}
     assert calls[-1]["overrides"] == {"early_stop": True} and calls[-1]["seconds"] == s.seconds
+    # "Motion": the engine's default (first item) passes nothing; another choice is passed
+    from engine.train.presets import TrainConfig
+    assert s.motion == TrainConfig().motion
+    s.early_stop = False
+    s.motion = "hexplane"
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"iterations": 5, "motion": "hexplane"}
+    s.motion = "trajectory"
+    s.early_stop = True
     r = bpy.context.scene.bt4d_run
     assert r.status == "FINISHED" and "stopped early at step 3/5" in r.message

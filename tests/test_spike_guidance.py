@@ -42,7 +42,7 @@ def _fake_trainer(cap, **cfg):
         vt["image"] = torch.from_numpy(f.load_rgb())[None]
         vt["index"], vt["camera"] = i, f.camera
         items.append(vt)
-    conf = TrainConfig().replace(**{"block_interp": "linear", **cfg})
+    conf = TrainConfig().replace(**{"block_interp": "linear", "motion": "hexplane", **cfg})  # block loss on
     return types.SimpleNamespace(capture=cap, cfg=conf, items=items, seed=0, model=_FakeModel(), deform_opt=None)
 
 
@@ -176,7 +176,8 @@ needs_trainer_integration = pytest.mark.skipif(not _integrated(), reason="spike 
 
 _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init_random_points": 100,
          "densify_from": 2.0, "densify_until": 2.0, "fine_d_model": 16, "fine_channels": 8, "fine_k_sub": 4,
-         "block_interp": "linear", "between_colocated_p": 1.0}
+         "block_interp": "linear", "between_colocated_p": 1.0,
+         "motion": "hexplane"}  # the fine branch (Eq. 10) belongs to the HexPlane field
 
 
 @needs_trainer_integration

@@ -245,7 +245,8 @@ def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
     runs = {}
     for back in (0.0, 0.5):
-        tr = Trainer(cap, get_preset("fast", {"init": "stereo", "init_backdrop": back, "iterations": 4}),
+        tr = Trainer(cap, get_preset("fast", {"init": "stereo", "init_backdrop": back, "iterations": 4,
+                                                 "motion": "hexplane"}),
                      device="cpu", rgb_only=True)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -92,8 +92,10 @@ def test_deforming_scene_improves_with_training_and_beats_the_static_model(movin
 
 
 # ------------------------------------------------------------------------------- checkpoints and resume
-def test_cancel_then_resume_equals_an_uninterrupted_run(tiny_capture, tmp_path):
-    ov = {"iterations": 40, "static_fraction": 0.4, "densify_from": 0.1, "densify_every": 10, "init": "ply"}
+@pytest.mark.parametrize("motion", ["trajectory", "hexplane"])
+def test_cancel_then_resume_equals_an_uninterrupted_run(tiny_capture, tmp_path, motion):
+    ov = {"iterations": 40, "static_fraction": 0.4, "densify_from": 0.1, "densify_every": 10, "init": "ply",
+          "motion": motion}
     full = tmp_path / "full"
     train(tiny_capture, full, overrides=ov, seed=3)
 
@@ -118,9 +120,10 @@ def test_cancel_then_resume_equals_an_uninterrupted_run(tiny_capture, tmp_path):
     assert s2["resumed_from"] == 23 and s2["step"] == 40 and s2["status"] == "finished"
     pa, da = _params(full)
     pb, db = _params(part)
+    assert ("traj_means" in pa) == (motion == "trajectory") and (da is None) == (motion == "trajectory")
     for k in pa:
         torch.testing.assert_close(pa[k], pb[k], atol=1e-5, rtol=1e-4)
-    for k, v in da["state_dict"].items():
+    for k, v in (da or {"state_dict": {}})["state_dict"].items():
         torch.testing.assert_close(v, db["state_dict"][k], atol=1e-5, rtol=1e-4)
     assert read_run_json(part)["status"] == "finished"
 
@@ -224,6 +227,22 @@ def test_presets_exist_and_are_sized():
     assert TrainConfig.from_dict(c.to_dict()) == c
 
 
+def test_motion_defaults_and_the_block_weight_by_motion():
+    """Per-Gaussian trajectories carried by flow are the default motion; the block colour loss
+    (Eq. 20) is on with the HexPlane field alone and off with trajectories unless asked for."""
+    from engine.train.presets import block_weight
+
+    f = get_preset("fast")
+    assert f.motion == "trajectory" and f.traj_carry == "flow" and f.block_loss_weight is None
+    assert block_weight(f) == 0.0
+    assert block_weight(get_preset("fast", {"motion": "hexplane"})) == 1.0
+    assert block_weight(get_preset("fast", {"motion": "trajectory+hexplane"})) == 0.0
+    c = get_preset("fast", {"block_loss_weight": 2})  # as `--set block_loss_weight=2` parses it
+    assert c.block_loss_weight == 2.0 and isinstance(c.block_loss_weight, float) and block_weight(c) == 2.0
+    assert block_weight(get_preset("fast", {"motion": "hexplane", "block_loss_weight": 0})) == 0.0
+    assert TrainConfig.from_dict(f.to_dict()) == f
+
+
 def test_steps_for_budget_scales_with_time():
     cfg = get_preset("fast")
     a = steps_for_budget(60, 0.05, 0.1, cfg)
@@ -272,7 +291,7 @@ def test_fine_encoder_hook_trains_and_is_checkpointed(tiny_capture, tmp_path, mo
         return []
 
     run = tmp_path / "run"
-    train(tiny_capture, run, overrides={"iterations": 8, "static_fraction": 0.25, "init": "ply"},
+    train(tiny_capture, run, overrides={"iterations": 8, "static_fraction": 0.25, "init": "ply", "motion": "hexplane"},
           loss_factories=[factory])
     sd = load_checkpoint(run)["model"]["deformation"]["state_dict"]
     assert "fine_encoder.bias" in sd and float(sd["fine_encoder.bias"].abs().sum()) > 0  # it was optimised
@@ -285,7 +304,8 @@ def test_time_curriculum_admits_frames_in_order_and_carries_motion_forward(tiny_
     from engine.train.trainer import Trainer
 
     cap = load_capture(tiny_capture)
-    tr = Trainer(cap, get_preset("fast", {"init": "ply", "static_fraction": 0.2, "time_curriculum": 0.5}),
+    tr = Trainer(cap, get_preset("fast", {"init": "ply", "static_fraction": 0.2, "time_curriculum": 0.5,
+                                          "motion": "hexplane"}),
                  device="cpu", total_steps=100)
     times = tr.frame_times
     assert len(times) == 3
@@ -336,10 +356,13 @@ def test_loss_terms_block_and_stereo_depth():
 
 
 # ------------------------------------------------------------------------------- skipping
-FREEZE = {"freeze_static": True, "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 10, "freeze_k_checks": 2}
+# freezing skips the HexPlane field (it turns itself off with trajectories)
+FREEZE = {"motion": "hexplane", "freeze_static": True, "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 10,
+          "freeze_k_checks": 2}
 # learning rates ~0 and no densification: nothing changes, the proxy PSNR is a plateau
 FROZEN_LRS = {k: 1e-12 for k in ("lr_means", "lr_means_final", "lr_scales", "lr_quats", "lr_opacities", "lr_sh_dc",
-                                 "lr_sh_rest", "lr_grid", "lr_grid_final", "lr_mlp", "lr_mlp_final")}
+                                 "lr_sh_rest", "lr_grid", "lr_grid_final", "lr_mlp", "lr_mlp_final",
+                                 "lr_traj", "lr_traj_final", "lr_traj_quats")}
 
 
 def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_path):
@@ -618,7 +641,8 @@ def test_budget_probe_prices_the_spike_branchs_in_between_render(demo_capture, m
     from engine.train.trainer import Trainer
 
     cap = load_capture(demo_capture)
-    tr = Trainer(cap, get_preset("fast", {"init_max_points": 400, "init_random_points": 100}), device="cpu")
+    tr = Trainer(cap, get_preset("fast", {"init_max_points": 400, "init_random_points": 100,
+                                          "between_colocated_p": 1.0}), device="cpu")
     tr.init_model()
     widths = []
     render = Model4D.render

@@ -35,6 +35,7 @@ from ..spike.render import SpikeRenderer, cumulative_spike_loss, estimate_sensor
 from .instants import InstantSampler
 from .interpolation import avg_pool_blocks, block_colour_loss, flow_interpolate, linear_blend
 from .losses import LossTerm
+from .presets import block_weight
 
 __all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info"]
 
@@ -134,7 +135,7 @@ class SpikeGuidance:
             if self.stream.num_frames * self.stream.width * self.stream.height <= 256 * 2 ** 20:
                 self._spikes = self.stream.read(0, self.stream.num_frames)
         self._flows: dict = {}
-        if cfg.block_loss_weight > 0 and cfg.block_interp == "flow":
+        if block_weight(cfg) > 0 and cfg.block_interp == "flow":
             self.precompute_flows()
         self.rng = np.random.default_rng(trainer.seed + 17)
         self._window_cache: SpikeWindowCache | None = None
@@ -316,7 +317,7 @@ class SpikeGuidance:
             cam = self.colocated
             inst = self.spike_sampler.between_instant(max_time=max_time)
         else:
-            if not self.sampler.has_between or self.cfg.block_loss_weight <= 0:
+            if not self.sampler.has_between or block_weight(self.cfg) <= 0:
                 return None
             cams = [c for c in self.by_cam if c != self.colocated] or list(self.by_cam)
             cam = cams[int(self.rng.integers(len(cams)))]
@@ -391,8 +392,8 @@ def guidance_factory(trainer) -> list:
         terms = [LossTerm("fine_attach", 1.0, _fine_term(guid), stages=("deform",))]
     if guid.renderer is not None and cfg.spike_loss_weight > 0:
         terms.append(LossTerm("spike", float(cfg.spike_loss_weight), _spike_term(guid), stages=("deform",)))
-    if cfg.block_loss_weight > 0:
-        terms.append(LossTerm("block_colour", float(cfg.block_loss_weight), _block_term(guid),
+    if block_weight(cfg) > 0:
+        terms.append(LossTerm("block_colour", block_weight(cfg), _block_term(guid),
                               stages=("deform",)))
     return terms
 

@@ -51,7 +51,7 @@ from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
 from .geometry_losses import geometry_post_step_hooks, step_background
 from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms
-from .presets import TrainConfig
+from .presets import TrainConfig, block_weight
 from .spike_guidance import guidance_factory, spike_stream_info
 
 # The loss factories of a run, in one place: each ``(trainer) -> [LossTerm]`` is called when a
@@ -304,7 +304,7 @@ class Trainer:
             return False
         if spike_stream_info(self.capture) is None:  # no spikes: plain RGB training, no flag needed
             return False
-        return self.cfg.spike_loss_weight > 0 or self.cfg.block_loss_weight > 0
+        return self.cfg.spike_loss_weight > 0 or block_weight(self.cfg) > 0
 
     def _make_deform_opt(self) -> None:
         d = self.model.deformation
