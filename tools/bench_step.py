@@ -74,6 +74,7 @@ class StepProfiler:
         self._stack: list[list] = []  # [category, start, child seconds]
         self._patches: list[tuple] = []
         self._field_bwd_start = None
+        self.fine_stats: dict | None = None  # EncodedWindows counters of the guided run
 
     def _acc(self, label):
         if label not in self.by_label:
@@ -239,10 +240,18 @@ def add_arguments(parser) -> None:
 
 # Issue 13's speed-ups that bench-step can switch off, to measure before / after in one
 # process (a shared machine's load changes between processes).
+# A variant may also patch the run's TrainConfig (``overrides``): switches that change what
+# is trained are measured here for speed only (their quality: README, Spike guidance).
 VARIANTS = {
     "current": {"doc": "the engine as it is", "hexplane_sampler": "auto"},
     "reference": {"doc": "HexPlane sampled by grid_sample, as before the fused sampler",
                   "hexplane_sampler": "torch"},
+    "fine-nokeep": {"doc": "spike windows encoded at every render, as before EncodedWindows",
+                    "hexplane_sampler": "auto", "overrides": {"fine_encoder_every": 0}},
+    "fine-every4": {"doc": "fine_encoder_every=4", "hexplane_sampler": "auto",
+                    "overrides": {"fine_encoder_every": 4}},
+    "fine-frozen": {"doc": "fine_frozen_encoder (encoded once per window)", "hexplane_sampler": "auto",
+                    "overrides": {"fine_frozen_encoder": True}},
 }
 
 
@@ -272,6 +281,10 @@ def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only:
                 tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
                 continue
             prof.run_step(tr, i, "static" if stage == "static" else deform)
+    enc = getattr(tr.model.deformation, "fine_encoder", None)
+    if enc is not None and hasattr(enc, "encoded"):  # spike windows encoded / shared / reused stale
+        e = enc.encoded
+        prof.fine_stats = {"computed": e.computed, "shared": e.shared, "stale": e.stale}
     return tr.model.gaussians.num_gaussians
 
 
@@ -290,7 +303,8 @@ def compare_runs(capture, steps: int, preset: str = "fast", overrides: dict | No
         for rgb_only in ((True, False) if spike else (True,)):
             for v in variants:
                 with variant(v):
-                    n = _profile_run(cap, steps, preset, overrides, rgb_only, profs[v])
+                    n = _profile_run(cap, steps, preset, {**(overrides or {}), **VARIANTS[v].get("overrides", {})},
+                                     rgb_only, profs[v])
                 counts[v]["rgb_deform" if rgb_only else "guided_deform"] = n
     finally:
         torch.set_num_threads(threads)
@@ -348,6 +362,8 @@ def main(args) -> int:
                 print(f"guided step / RGB step: {r['guided_step_over_rgb_step']:.2f}x (target <= 1.6x)")
             print()
         print(f"Gaussians at the end ({v}): {counts[v]}")
+        if getattr(prof, "fine_stats", None):
+            print(f"spike windows encoded / shared / reused stale ({v}): {prof.fine_stats}")
     if len(variants) > 1:
         base = profs[variants[0]]
         for v in variants[1:]:

@@ -133,6 +133,10 @@ class TrainConfig:
     fine_d_model: int = 64  # attention width of the fine branch
     fine_channels: int = 32  # conv channels of the spike texture encoder
     lr_fine: float = 1e-3  # learning rate of the fine branch
+    # spike windows' conv encoder output kept (EncodedWindows, issue 13): 1 = one pass per window
+    # and weights (renders of a step share it; exact), k > 1 = a window's encoder runs, forward and
+    # backward, at most every k steps, its tokens reused detached in between; 0 = no reuse
+    fine_encoder_every: int = 1
     spike_loss_weight: float = 1.0  # Eq. 17 (rate L1 in linear-luminance units)
     spike_window: int = 32  # m: spike frames per rendered window (paper: 32)
     spike_loss_mode: str = "counts"  # counts (expected counts) | if (m-step IF, surrogate gradient)

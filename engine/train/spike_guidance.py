@@ -69,7 +69,7 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
             "rgb_times": rgb_times, "coverage": [float(stream.t0), float(stream.t_end)],
             "k_sub": int(cfg.fine_k_sub), "d_model": int(cfg.fine_d_model),
             "channels": int(cfg.fine_channels), "per_gaussian": bool(cfg.fine_per_gaussian),
-            "frozen_encoder": bool(cfg.fine_frozen_encoder),
+            "frozen_encoder": bool(cfg.fine_frozen_encoder), "encoder_every": int(cfg.fine_encoder_every),
             "change_gate": bool(cfg.fine_change_gate), "change_block": int(cfg.spike_change_block),
             "bounds_min": field.bounds_min.tolist(), "bounds_max": field.bounds_max.tolist(), "view": view}
     enc = SpikeFineEncoder(field.feature_dim, spec).to(field.bounds_min.device)
@@ -376,6 +376,14 @@ def _fine_term(guid: SpikeGuidance):
     return fn
 
 
+def _tick_fine(tr, step, item, meta) -> None:
+    """Post-step hook: one step done for the fine encoder's kept windows (``fine_encoder_every``)."""
+    field = tr.model.deformation if tr.model is not None else None
+    enc = getattr(field, "fine_encoder", None)
+    if isinstance(enc, SpikeFineEncoder):
+        enc.encoded.tick()
+
+
 def guidance_factory(trainer) -> list:
     """Loss terms of the spike guidance for a (non rgb_only) run."""
     cfg = trainer.cfg
@@ -383,6 +391,9 @@ def guidance_factory(trainer) -> list:
         return []
     guid = SpikeGuidance(trainer)
     trainer.spike_guidance = guid
+    hooks_after = getattr(trainer, "post_step_hooks", None)
+    if hooks_after is not None:
+        hooks_after.append(_tick_fine)
     hooks = getattr(trainer, "deformation_hooks", None)
     if hooks is not None:  # the trainer calls it when the field is created or restored
         hooks.append(guid.ensure_fine)
