@@ -33,7 +33,7 @@ from ..scene.fine_deformation import SpikeFineEncoder, project_to_grid
 from ..spike.features import SpikeWindowCache, bracket
 from ..spike.render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
 from .instants import InstantSampler
-from .interpolation import avg_pool_blocks, block_colour_loss, flow_interpolate, linear_blend
+from .interpolation import avg_pool_blocks, block_colour_loss, flow_consistency, flow_interpolate, linear_blend
 from .losses import LossTerm
 
 __all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info"]
@@ -268,7 +268,10 @@ class SpikeGuidance:
         if key not in self._flows:
             _, flows = flow_interpolate(a, b, 0.5, return_flows=True)
             self._flows[key] = flows
-        return flow_interpolate(a, b, eps, flows=self._flows[key]).clamp(0, 1)[None]
+        cons = self.__dict__.setdefault("_consistency", {})
+        if key not in cons:  # occlusion maps of the pair: the same at every instant
+            cons[key] = flow_consistency(*self._flows[key])
+        return flow_interpolate(a, b, eps, flows=self._flows[key], consistency=cons[key]).clamp(0, 1)[None]
 
     TARGET_STEPS = 64  # block-colour targets are interpolated at 1/64-interval steps (cached)
     TARGET_CACHE_BYTES = 256 * 2 ** 20
