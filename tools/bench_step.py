@@ -42,6 +42,7 @@ from engine.scene import fine_deformation as fd
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
+from engine.train import interpolation, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -241,11 +242,28 @@ def add_arguments(parser) -> None:
 # Issue 13's speed-ups that bench-step can switch off, to measure before / after in one
 # process (a shared machine's load changes between processes).
 # A variant may also patch the run's TrainConfig (``overrides``): switches that change what
-# is trained are measured here for speed only (their quality: README, Spike guidance).
+# is trained are measured here for speed only (their quality: README, Spike guidance), and
+# name module attributes to swap for the block (``patches``: {(module, name): value}).
+def _norm_flow_length(f):
+    return f.norm(dim=1, keepdim=True)
+
+
+_BEFORE_GUIDED = {  # the spike branch as before EncodedWindows and the cached occlusion maps
+    (interpolation, "_flow_length"): _norm_flow_length,
+    (spike_guidance, "flow_consistency"): lambda *flows: None,  # None: flow_interpolate recomputes them
+}
+
 VARIANTS = {
     "current": {"doc": "the engine as it is", "hexplane_sampler": "auto"},
     "reference": {"doc": "HexPlane sampled by grid_sample, as before the fused sampler",
                   "hexplane_sampler": "torch"},
+    "guided-before": {"doc": "the spike branch before issue 13's guided-step work: every render encodes its "
+                             "spike window, block-colour targets recompute their occlusion maps",
+                      "hexplane_sampler": "auto", "patches": _BEFORE_GUIDED,
+                      "overrides": {"fine_encoder_every": 0, "fine_frozen_encoder": False, "between_every": 1}},
+    "guided-exact": {"doc": "this code with the training switches of before (trained encoder, a between-frame "
+                            "render every step): the pure-speed part", "hexplane_sampler": "auto",
+                     "overrides": {"fine_encoder_every": 1, "fine_frozen_encoder": False, "between_every": 1}},
     "fine-nokeep": {"doc": "spike windows encoded at every render, as before EncodedWindows",
                     "hexplane_sampler": "auto", "overrides": {"fine_encoder_every": 0}},
     "fine-every4": {"doc": "fine_encoder_every=4", "hexplane_sampler": "auto",
@@ -261,10 +279,15 @@ def variant(name: str):
     spec = VARIANTS[name]
     old = HexPlane.sampler
     HexPlane.sampler = spec["hexplane_sampler"]
+    saved = [(mod, attr, getattr(mod, attr)) for mod, attr in spec.get("patches", {})]
+    for (mod, attr), value in spec.get("patches", {}).items():
+        setattr(mod, attr, value)
     try:
         yield
     finally:
         HexPlane.sampler = old
+        for mod, attr, value in reversed(saved):
+            setattr(mod, attr, value)
 
 
 def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only: bool,
