@@ -210,6 +210,7 @@ class EncodedWindows:
       train every step on the kept tokens. This changes training (``fine_encoder_every``).
 
     ``refresh_every`` 0 keeps nothing: every call encodes (the code path before issue 13).
+    Weights written through ``.data`` (no version bump) are not seen: use ``clear()`` then.
     ``computed`` / ``shared`` / ``stale`` count the three outcomes (tests, bench-step)."""
 
     def __init__(self, refresh_every: int = 1):
@@ -323,7 +324,9 @@ class SpikeFineEncoder(nn.Module):
             v = self.spec["view"]
             grid, vis = project_to_grid(world.detach(), torch.as_tensor(v["viewmat"]), torch.as_tensor(v["K"]),
                                         int(v["width"]), int(v["height"]))
-        enc = self.encoded.get(int(win.index), self.net.encoder.parameters(), lambda: self.net.encode(win.tex))
+        # keyed by device too: Module.to() swaps parameter data without a version bump
+        enc = self.encoded.get((int(win.index), str(self.net.out.weight.device)), self.net.encoder.parameters(),
+                               lambda: self.net.encode(win.tex))
         if self.net.per_gaussian:
             f = self.net(win, float(t), grid=grid, visible=vis, encoded=enc)
         else:
