@@ -61,3 +61,19 @@ def test_variants_profile_both_code_paths_in_one_process(capture, monkeypatch):
             tab = prof.table("rgb_deform", clock)
             assert tab["steps"] == 5 and tab["ms"]["field_bwd"] > 0
             assert sum(tab["ms"].values()) == pytest.approx(tab["step_ms"], rel=1e-6)
+
+
+def test_guided_before_variant_patches_the_old_code_paths_and_restores_them():
+    import torch
+
+    from engine.train import interpolation, spike_guidance
+
+    fl, cons = interpolation._flow_length, spike_guidance.flow_consistency
+    assert bench_step.VARIANTS["guided-before"]["overrides"]["fine_encoder_every"] == 0
+    with bench_step.variant("guided-before"):
+        assert interpolation._flow_length is bench_step._norm_flow_length
+        assert spike_guidance.flow_consistency(None, None) is None  # occlusion maps recomputed every time
+        f = torch.randn(1, 2, 5, 6)
+        old = interpolation._flow_length(f)
+    assert (interpolation._flow_length, spike_guidance.flow_consistency) == (fl, cons)
+    assert torch.allclose(interpolation._flow_length(f), old, atol=1e-6)  # same values, other code path

@@ -134,3 +134,103 @@ def test_per_gaussian_features_follow_projection(stream):
     assert all(torch.isfinite(p.grad).all() for p in fine.parameters() if p.grad is not None)
     with pytest.raises(ValueError):
         fine(w, 0.015)
+
+
+def _two_windows(stream):
+    cache = SpikeWindowCache(stream, [0.0, 0.01, 0.02, 0.03], k_sub=4)
+    return cache.window(0.005), cache.window(0.015)
+
+
+def _encode_with(memo, fine, w):
+    enc = memo.get(w.index, fine.encoder.parameters(), lambda: fine.encode(w.tex))
+    return enc
+
+
+def test_encoded_windows_share_one_pass_per_window_and_weights(stream):
+    """fine_encoder_every=1: two renders of one step in the same window share one encoder
+    pass; values equal and gradients equal (float rounding) to two separate passes; a
+    backward pass or an optimiser step ends the sharing."""
+    from engine.scene.fine_deformation import EncodedWindows
+
+    torch.manual_seed(0)
+    w0, w1 = _two_windows(stream)
+    fine = FineDeformation(8, d_model=32, channels=16)
+    torch.nn.init.normal_(fine.out.weight)
+    ts = (0.012, 0.017, 0.004)  # two queries in window 1, one in window 0
+
+    def loss_of(memo):
+        total = 0.0
+        for t in ts:
+            w = w1 if t >= 0.01 else w0
+            enc = None if memo is None else _encode_with(memo, fine, w)
+            total = total + (fine(w, t, encoded=enc) ** 2).sum()
+        return total
+
+    fine.zero_grad()
+    ref = loss_of(None)
+    ref.backward()
+    ref_grads = [p.grad.clone() for p in fine.parameters()]
+    memo = EncodedWindows(1)
+    fine.zero_grad()
+    got = loss_of(memo)
+    assert memo.computed == 2 and memo.shared == 1  # window 1 encoded once for both queries
+    assert torch.equal(got.detach(), ref.detach())
+    got.backward()
+    for a, b in zip(ref_grads, [p.grad for p in fine.parameters()]):
+        assert float((a - b).abs().max()) <= 1e-5 * float(a.abs().max()) + 1e-9, float((a - b).abs().max())
+    # its graph is consumed: the next pass (same weights) encodes again rather than reuse it
+    loss_of(memo)
+    assert memo.computed == 4 and memo.shared == 2
+    # new weights: encoded again; without gradients (evaluation) kept while the weights hold
+    torch.optim.SGD(fine.parameters(), lr=0.1).step()
+    with torch.no_grad():
+        loss_of(memo)
+        loss_of(memo)
+    assert memo.computed == 6 and memo.shared == 2 + 1 + 3
+    off = EncodedWindows(0)  # 0: no reuse at all
+    loss_of(off)
+    assert off.computed == 3 and off.shared == 0
+
+
+def test_frozen_encoder_is_encoded_once_per_window(stream):
+    from engine.scene.fine_deformation import EncodedWindows
+
+    w0, w1 = _two_windows(stream)
+    fine = FineDeformation(8, d_model=32, channels=16, frozen_encoder=True)
+    memo = EncodedWindows(1)
+    opt = torch.optim.Adam([p for p in fine.parameters() if p.requires_grad], lr=1e-2)
+    torch.nn.init.normal_(fine.out.weight)
+    for step in range(4):
+        opt.zero_grad()
+        loss = sum((fine(w, t, encoded=_encode_with(memo, fine, w)) ** 2).sum()
+                   for w, t in ((w0, 0.004), (w1, 0.015)))
+        loss.backward()
+        opt.step()
+        memo.tick()
+    assert memo.computed == 2 and memo.shared == 6
+
+
+def test_encoder_every_k_reuses_stale_tokens_and_trains_the_encoder_on_refresh_steps(stream):
+    """fine_encoder_every=k>1: a window's encoder runs (and gets gradients) once per k steps."""
+    import copy
+
+    from engine.scene.fine_deformation import EncodedWindows
+
+    _, w1 = _two_windows(stream)
+    fine = FineDeformation(8, d_model=32, channels=16)
+    torch.nn.init.normal_(fine.out.weight)
+    memo = EncodedWindows(3)
+    opt = torch.optim.Adam(fine.parameters(), lr=1e-2)
+    conv = fine.encoder.net[0].weight
+    got_grad = []
+    for step in range(7):
+        opt.zero_grad(set_to_none=True)
+        (fine(w1, 0.015, encoded=_encode_with(memo, fine, w1)) ** 2).sum().backward()
+        got_grad.append(conv.grad is not None)
+        assert fine.token_proj.weight.grad is not None  # the rest of the branch trains every step
+        opt.step()
+        memo.tick()
+    assert got_grad == [True, False, False, True, False, False, True]
+    assert memo.computed == 3 and memo.stale == 4
+    # a copy (the budget probe's deep copy of the model) starts empty
+    assert copy.deepcopy(memo).refresh_every == 3 and copy.deepcopy(memo).computed == 0

@@ -131,3 +131,22 @@ def test_block_colour_loss_any_size_at_between_scale(size, scale):
     assert torch.isfinite(same) and torch.isfinite(off)
     if min(W, H) >= 64:  # tiny images: a block is a large part of the gradient, the grids blur it
         assert float(same) < 0.03 and abs(float(off) - 0.2) < 0.03
+
+
+def test_cached_consistency_gives_the_same_interpolation():
+    """flow_consistency computed once per pair (SpikeGuidance keeps it) changes nothing."""
+    from engine.train.interpolation import flow_consistency
+
+    torch.manual_seed(0)
+    a = torch.rand(24, 32, 3)
+    b = torch.roll(a, shifts=2, dims=1)
+    _, flows = flow_interpolate(a, b, 0.5, return_flows=True)
+    cons = flow_consistency(*flows)
+    assert cons[0].shape == (1, 1, 24, 32) and float(cons[0].min()) >= 0
+    f_ab, f_ba = flows
+    # against a zero backward flow the inconsistency is the forward flow's length
+    assert torch.allclose(flow_consistency(f_ab, torch.zeros_like(f_ba))[0], f_ab.norm(dim=1, keepdim=True),
+                          atol=1e-6)
+    for eps in (0.0, 0.3, 0.8):
+        assert torch.equal(flow_interpolate(a, b, eps, flows=flows, consistency=cons),
+                           flow_interpolate(a, b, eps, flows=flows))

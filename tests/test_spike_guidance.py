@@ -319,3 +319,33 @@ def test_run_renders_its_fine_branch_without_the_capture(demo_capture, tmp_path)
     _t.save(state, ck)
     with pytest.raises(RunError, match="capture"):
         load_run(tmp_path / "run").render([view])
+
+
+@needs_trainer_integration
+@pytest.mark.slow
+@pytest.mark.parametrize("frozen", [False, True])
+def test_fine_encoder_every_reaches_the_encoder_and_each_step_ticks_it(cap, frozen):
+    """``fine_encoder_every`` goes through the spec to the encoder's kept windows, every
+    training step advances their clock; with k > 1 later steps reuse kept tokens (stale), and
+    a frozen encoder (the default) encodes each window once for the run (shared)."""
+    from engine.scene.fine_deformation import EncodedWindows
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
+
+    assert get_preset("fast").fine_frozen_encoder  # the default (README, Spike guidance)
+    tr = Trainer(cap, get_preset("fast", {**_TINY, "iterations": 10, "static_fraction": 0.2,
+                                          "fine_encoder_every": 50, "fine_frozen_encoder": frozen}), device="cpu")
+    tr.init_model()
+    for step in range(10):
+        tr.step(step)
+    enc = tr.model.deformation.fine_encoder
+    assert enc.spec["encoder_every"] == 50 and isinstance(enc.encoded, EncodedWindows)
+    assert enc.encoded.refresh_every == 50 and enc.encoded.clock == 8  # the 8 deformation steps
+    # one encoder pass per window visited (at most the 6 windows), whatever the renders (>= 1 a step)
+    e = enc.encoded
+    assert e.computed <= 6 and e.computed + e.shared + e.stale >= 8
+    assert (e.stale == 0 and e.shared > 0) if frozen else e.stale > 0
+    assert all(p.grad is None for p in enc.net.encoder.parameters()) == frozen
+    assert SpikeFineEncoder(16, {**enc.spec, "encoder_every": 0}).encoded.refresh_every == 0
+    old_spec = {k: v for k, v in enc.spec.items() if k != "encoder_every"}  # runs saved before it
+    assert SpikeFineEncoder(16, old_spec).encoded.refresh_every == 1

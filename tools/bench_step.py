@@ -42,6 +42,7 @@ from engine.scene import fine_deformation as fd
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
+from engine.train import interpolation, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -74,6 +75,7 @@ class StepProfiler:
         self._stack: list[list] = []  # [category, start, child seconds]
         self._patches: list[tuple] = []
         self._field_bwd_start = None
+        self.fine_stats: dict | None = None  # EncodedWindows counters of the guided run
 
     def _acc(self, label):
         if label not in self.by_label:
@@ -239,10 +241,38 @@ def add_arguments(parser) -> None:
 
 # Issue 13's speed-ups that bench-step can switch off, to measure before / after in one
 # process (a shared machine's load changes between processes).
+# A variant may also patch the run's TrainConfig (``overrides``): switches that change what
+# is trained are measured here for speed only (their quality: README, Spike guidance), and
+# name module attributes to swap for the block (``patches``: {(module, name): value}).
+def _norm_flow_length(f):
+    return f.norm(dim=1, keepdim=True)
+
+
+_BEFORE_GUIDED = {  # the spike branch as before EncodedWindows and the cached occlusion maps
+    (interpolation, "_flow_length"): _norm_flow_length,
+    (spike_guidance, "flow_consistency"): lambda *flows: None,  # None: flow_interpolate recomputes them
+}
+
 VARIANTS = {
     "current": {"doc": "the engine as it is", "hexplane_sampler": "auto"},
     "reference": {"doc": "HexPlane sampled by grid_sample, as before the fused sampler",
                   "hexplane_sampler": "torch"},
+    "guided-before": {"doc": "the spike branch before issue 13's guided-step work: every render encodes its "
+                             "spike window, block-colour targets recompute their occlusion maps",
+                      "hexplane_sampler": "auto", "patches": _BEFORE_GUIDED,
+                      "overrides": {"fine_encoder_every": 0, "fine_frozen_encoder": False, "between_every": 1}},
+    "guided-exact": {"doc": "this code with the training switches of before (trained encoder, a between-frame "
+                            "render every step): the pure-speed part", "hexplane_sampler": "auto",
+                     "overrides": {"fine_encoder_every": 1, "fine_frozen_encoder": False, "between_every": 1}},
+    "between2": {"doc": "between_every=2: a between-frame render every other step (not the default: "
+                        "-0.7 dB on moving pixels, README)", "hexplane_sampler": "auto",
+                 "overrides": {"between_every": 2}},
+    "fine-nokeep": {"doc": "spike windows encoded at every render, as before EncodedWindows",
+                    "hexplane_sampler": "auto", "overrides": {"fine_encoder_every": 0}},
+    "fine-every4": {"doc": "fine_encoder_every=4", "hexplane_sampler": "auto",
+                    "overrides": {"fine_encoder_every": 4}},
+    "fine-frozen": {"doc": "fine_frozen_encoder (encoded once per window)", "hexplane_sampler": "auto",
+                    "overrides": {"fine_frozen_encoder": True}},
 }
 
 
@@ -252,10 +282,15 @@ def variant(name: str):
     spec = VARIANTS[name]
     old = HexPlane.sampler
     HexPlane.sampler = spec["hexplane_sampler"]
+    saved = [(mod, attr, getattr(mod, attr)) for mod, attr in spec.get("patches", {})]
+    for (mod, attr), value in spec.get("patches", {}).items():
+        setattr(mod, attr, value)
     try:
         yield
     finally:
         HexPlane.sampler = old
+        for mod, attr, value in reversed(saved):
+            setattr(mod, attr, value)
 
 
 def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only: bool,
@@ -272,6 +307,10 @@ def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only:
                 tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
                 continue
             prof.run_step(tr, i, "static" if stage == "static" else deform)
+    enc = getattr(tr.model.deformation, "fine_encoder", None)
+    if enc is not None and hasattr(enc, "encoded"):  # spike windows encoded / shared / reused stale
+        e = enc.encoded
+        prof.fine_stats = {"computed": e.computed, "shared": e.shared, "stale": e.stale}
     return tr.model.gaussians.num_gaussians
 
 
@@ -290,7 +329,8 @@ def compare_runs(capture, steps: int, preset: str = "fast", overrides: dict | No
         for rgb_only in ((True, False) if spike else (True,)):
             for v in variants:
                 with variant(v):
-                    n = _profile_run(cap, steps, preset, overrides, rgb_only, profs[v])
+                    n = _profile_run(cap, steps, preset, {**(overrides or {}), **VARIANTS[v].get("overrides", {})},
+                                     rgb_only, profs[v])
                 counts[v]["rgb_deform" if rgb_only else "guided_deform"] = n
     finally:
         torch.set_num_threads(threads)
@@ -348,6 +388,8 @@ def main(args) -> int:
                 print(f"guided step / RGB step: {r['guided_step_over_rgb_step']:.2f}x (target <= 1.6x)")
             print()
         print(f"Gaussians at the end ({v}): {counts[v]}")
+        if getattr(prof, "fine_stats", None):
+            print(f"spike windows encoded / shared / reused stale ({v}): {prof.fine_stats}")
     if len(variants) > 1:
         base = profs[variants[0]]
         for v in variants[1:]:

@@ -5,9 +5,12 @@
 
 * Texture features (Eq. 7): the paper uses a frozen pretrained ResNet50; no weights are
   available offline, so :class:`SpikeTextureEncoder` is a small conv net over the TFP/TFI
-  images of the K sub-windows (:mod:`engine.spike.features`). It is **trained jointly** by
-  default (``frozen_encoder=False``); ``frozen_encoder=True`` keeps it at its random
-  initialisation (a fixed random-feature extractor), for the ablation.
+  images of the K sub-windows (:mod:`engine.spike.features`). ``frozen_encoder=True`` keeps
+  it at its random initialisation (a fixed random-feature extractor, frozen like the
+  paper's), ``False`` trains it jointly. Training runs freeze it by default
+  (``TrainConfig.fine_frozen_encoder``, issue 13): each window is then encoded once per run
+  (:class:`EncodedWindows`) instead of twice per step, forward and backward, and on the
+  demo it scored no worse (two seeds, README "Spike guidance").
 * Time encoding (Eq. 8): sinusoidal, on the time relative to the window,
   ``(t - T1) / (T2 - T1)`` in [0, 1] (the same for the sub-window tokens and the query).
 * MHA (Eq. 9): a Transformer encoder layer (``nn.MultiheadAttention`` + feed-forward) over
@@ -35,8 +38,8 @@ from ..errors import RunError
 from ..io.capture import load_capture
 from ..spike.features import SpikeWindowCache
 
-__all__ = ["sinusoidal_encoding", "SpikeTextureEncoder", "FineDeformation", "SpikeFineEncoder", "project_to_grid",
-           "count_parameters"]
+__all__ = ["sinusoidal_encoding", "SpikeTextureEncoder", "FineDeformation", "EncodedWindows", "SpikeFineEncoder",
+           "project_to_grid", "count_parameters"]
 
 
 def sinusoidal_encoding(x: torch.Tensor, dim: int, max_freq_log2: float | None = None) -> torch.Tensor:
@@ -133,28 +136,38 @@ class FineDeformation(nn.Module):
                 return self.encoder(tex)
         return self.encoder(tex)
 
+    def encode(self, tex: torch.Tensor) -> torch.Tensor:
+        """The query-independent part of one spike window (Eq. 7): its texture images
+        [K, 2, h, w] through the conv encoder -- global: tokens pooled to ``pool x pool``
+        [1, K, C * pool^2]; per-Gaussian: the feature maps [K, C, h', w']. This is what the
+        spike branch costs (convolutions over K full spike images, forward and backward);
+        :class:`EncodedWindows` keeps it per window."""
+        fmap = self.features(tex.to(self.out.weight.device))   # [K, C, h', w']
+        if self.per_gaussian:
+            return fmap
+        return F.adaptive_avg_pool2d(fmap, self.pool).reshape(1, fmap.shape[0], -1)
+
     def forward(self, window, t: float, *, grid: torch.Tensor | None = None,
-                visible: torch.Tensor | None = None) -> torch.Tensor:
+                visible: torch.Tensor | None = None, encoded: torch.Tensor | None = None) -> torch.Tensor:
         """``window``: a :class:`engine.spike.features.SpikeWindow` (tex [K,2,h,w], times [K],
         t1, t2); ``t``: query time (s). Per-Gaussian mode needs ``grid`` [N, 2] (from
-        :func:`project_to_grid`) and optionally ``visible`` [N]."""
-        tex = window.tex
+        :func:`project_to_grid`) and optionally ``visible`` [N]. ``encoded``: this window's
+        :meth:`encode` when already computed."""
         dev = self.out.weight.device
-        fmap = self.features(tex.to(dev))                      # [K, C, h', w']
-        K = fmap.shape[0]
+        enc = self.encode(window.tex) if encoded is None else encoded
+        K = enc.shape[1] if not self.per_gaussian else enc.shape[0]
         pe_tok = sinusoidal_encoding(self._rel(window.times.detach().cpu(), window.t1, window.t2),
                                      self.d_model).to(dev)     # [K, d]
         pe_q = sinusoidal_encoding(self._rel(torch.tensor([t]), window.t1, window.t2), self.d_model).to(dev)
         if not self.per_gaussian:
-            tok = F.adaptive_avg_pool2d(fmap, self.pool).reshape(1, K, -1)
-            x = self.token_proj(tok) + pe_tok[None]             # [1, K, d]
+            x = self.token_proj(enc) + pe_tok[None]             # [1, K, d]
             q = self.query_proj(pe_q)[None]                     # [1, 1, d]
         else:
             if grid is None:
                 raise ValueError("per-Gaussian fine deformation needs the Gaussians' projections (grid)")
             N = grid.shape[0]
-            g = grid.to(dev, fmap.dtype).reshape(1, 1, N, 2).expand(K, 1, N, 2)
-            samp = F.grid_sample(fmap, g, mode="bilinear", padding_mode="border", align_corners=False)
+            g = grid.to(dev, enc.dtype).reshape(1, 1, N, 2).expand(K, 1, N, 2)
+            samp = F.grid_sample(enc, g, mode="bilinear", padding_mode="border", align_corners=False)
             tok = samp[:, :, 0, :].permute(2, 0, 1)             # [N, K, C]
             x = self.token_proj(tok) + pe_tok[None]             # [N, K, d]
             q = self.query_proj(pe_q)[None].expand(N, 1, self.d_model)
@@ -168,6 +181,79 @@ class FineDeformation(nn.Module):
 
 def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
     return int(sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only))
+
+
+# ----------------------------------------------------------------------------- encoded windows
+class _Encoded:
+    __slots__ = ("value", "versions", "clock", "live")
+
+    def __init__(self, value, versions, clock):
+        self.value, self.versions, self.clock, self.live = value, versions, clock, value.requires_grad
+
+
+class EncodedWindows:
+    """Per spike window, the conv encoder's output (:meth:`FineDeformation.encode`), so that
+    the renders of a training step (the RGB frame's and the between-frame one) and of an
+    evaluation do not run the encoder again on the same window (issue 13).
+
+    ``get(key, params, compute)`` returns ``compute()`` or a kept value:
+
+    * *same weights* (every ``params._version`` unchanged since it was computed): the kept
+      value itself. With gradients on it must still hold its autograd graph (not yet
+      consumed by a backward pass; a hook marks it): two renders of one step in the same
+      window then share one encoder pass and one backward pass through it -- the same
+      values and, up to float rounding, the same gradients as two passes. A frozen encoder
+      (no trainable weights) is encoded once per window for the whole run.
+    * *stale* (``refresh_every`` k > 1, gradients on): a value computed fewer than k steps
+      ago (:meth:`tick` counts steps), detached: the encoder is trained, forward and
+      backward, on a window's refresh steps only; the attention and the rest of the branch
+      train every step on the kept tokens. This changes training (``fine_encoder_every``).
+
+    ``refresh_every`` 0 keeps nothing: every call encodes (the code path before issue 13).
+    Weights written through ``.data`` (no version bump) are not seen: use ``clear()`` then.
+    ``computed`` / ``shared`` / ``stale`` count the three outcomes (tests, bench-step)."""
+
+    def __init__(self, refresh_every: int = 1):
+        self.refresh_every = max(0, int(refresh_every))
+        self.clock = 0
+        self.computed = self.shared = self.stale = 0
+        self._memo: dict = {}
+
+    def __deepcopy__(self, memo):  # a copied model (the budget probe) starts with no kept values
+        return EncodedWindows(self.refresh_every)
+
+    def tick(self) -> None:
+        """One training step done (the refresh clock of ``refresh_every``)."""
+        self.clock += 1
+
+    def clear(self) -> None:
+        self._memo.clear()
+
+    def get(self, key, params, compute):
+        if self.refresh_every == 0:
+            self.computed += 1
+            return compute()
+        params = list(params)
+        versions = tuple(p._version for p in params)
+        trains = torch.is_grad_enabled() and any(p.requires_grad for p in params)
+        e = self._memo.get(key)
+        if e is not None:
+            if e.versions == versions and (not trains or e.live):
+                self.shared += 1
+                return e.value
+            if trains and self.refresh_every > 1 and self.clock - e.clock < self.refresh_every:
+                self.stale += 1
+                return e.value.detach()
+        value = compute()
+        entry = _Encoded(value, versions, self.clock)
+        if value.requires_grad:
+            def consumed(_grad, entry=entry):  # backward reached it: its graph is gone
+                entry.live = False
+                entry.value = entry.value.detach()
+            value.register_hook(consumed)
+        self._memo[key] = entry
+        self.computed += 1
+        return value
 
 
 # ----------------------------------------------------------------------------- spike fine encoder
@@ -186,10 +272,13 @@ class SpikeFineEncoder(nn.Module):
         self.register_buffer("bounds_max", torch.as_tensor(spec["bounds_max"], dtype=torch.float32))
         self._cache: SpikeWindowCache | None = None
         self._tried = False
+        # encoder output per window (issue 13); "encoder_every": TrainConfig.fine_encoder_every
+        self.encoded = EncodedWindows(int(spec.get("encoder_every", 1)))
 
     # --- data source ---------------------------------------------------------------------
     def attach(self, cache: SpikeWindowCache | None) -> None:
         self._cache, self._tried = cache, True
+        self.encoded.clear()
 
     def source(self) -> SpikeWindowCache:
         """The spike windows: attached (training), stored in the checkpoint (runs saved
@@ -235,10 +324,13 @@ class SpikeFineEncoder(nn.Module):
             v = self.spec["view"]
             grid, vis = project_to_grid(world.detach(), torch.as_tensor(v["viewmat"]), torch.as_tensor(v["K"]),
                                         int(v["width"]), int(v["height"]))
+        # keyed by device too: Module.to() swaps parameter data without a version bump
+        enc = self.encoded.get((int(win.index), str(self.net.out.weight.device)), self.net.encoder.parameters(),
+                               lambda: self.net.encode(win.tex))
         if self.net.per_gaussian:
-            f = self.net(win, float(t), grid=grid, visible=vis)
+            f = self.net(win, float(t), grid=grid, visible=vis, encoded=enc)
         else:
-            f = self.net(win, float(t)).expand(n, -1)
+            f = self.net(win, float(t), encoded=enc).expand(n, -1)
         if gated:
             f = f * self.change_gate(cache, win.index, grid, vis)[:, None]
         return f

@@ -19,8 +19,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["linear_blend", "lk_flow", "warp", "flow_interpolate", "interpolate", "block_colour_loss",
-           "avg_pool_blocks", "resample_area"]
+__all__ = ["linear_blend", "lk_flow", "warp", "flow_consistency", "flow_interpolate", "interpolate",
+           "block_colour_loss", "avg_pool_blocks", "resample_area"]
 
 
 def _to_bchw(img: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -134,11 +134,25 @@ def lk_flow(a: torch.Tensor, b: torch.Tensor, *, levels: int | None = None, iter
     return flow
 
 
+def _flow_length(f: torch.Tensor) -> torch.Tensor:
+    """|f| per pixel of a flow [B, 2, H, W] -> [B, 1, H, W]. (``Tensor.norm(dim=1)`` over the
+    channel axis is a strided reduction that took ~75 % of a 320x240 interpolation here.)"""
+    return torch.sqrt(f[:, 0:1] * f[:, 0:1] + f[:, 1:2] * f[:, 1:2])
+
+
+def flow_consistency(f_ab: torch.Tensor, f_ba: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward-backward inconsistency (pixels) of each source flow, [B, 1, H, W] each: large
+    where a pixel is occluded in the other frame. Independent of the interpolation time, so
+    a caller interpolating one pair at several times computes it once (``consistency=``)."""
+    return _flow_length(f_ab + warp(f_ba, f_ab)), _flow_length(f_ba + warp(f_ab, f_ba))
+
+
 def flow_interpolate(a: torch.Tensor, b: torch.Tensor, eps: float, *, flows=None,
-                     return_flows: bool = False, **lk):
+                     return_flows: bool = False, consistency=None, **lk):
     """Flow-based interpolation at ``eps`` in [0, 1] between channel-last frames ``a``, ``b``.
 
-    ``flows`` = (flow_ab, flow_ba) reuses precomputed flows (several eps per pair).
+    ``flows`` = (flow_ab, flow_ba) reuses precomputed flows (several eps per pair), and
+    ``consistency`` = :func:`flow_consistency` of those flows their occlusion maps.
     """
     xa, single = _to_bchw(a)
     xb, _ = _to_bchw(b)
@@ -154,8 +168,7 @@ def flow_interpolate(a: torch.Tensor, b: torch.Tensor, eps: float, *, flows=None
     wa = warp(xa, f_t0)
     wb = warp(xb, f_t1)
     # occlusion: forward-backward consistency of each source flow at the sampled location
-    cons_a = (f_ab + warp(f_ba, f_ab)).norm(dim=1, keepdim=True)
-    cons_b = (f_ba + warp(f_ab, f_ba)).norm(dim=1, keepdim=True)
+    cons_a, cons_b = flow_consistency(f_ab, f_ba) if consistency is None else consistency
     va = torch.exp(-warp(cons_a, f_t0) ** 2 / 2.0)
     vb = torch.exp(-warp(cons_b, f_t1) ** 2 / 2.0)
     w0 = (1 - t) * (va + 1e-3)  # the floor keeps the endpoints exact where both are occluded

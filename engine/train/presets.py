@@ -132,11 +132,18 @@ class TrainConfig:
     # ---- spike guidance (BulletTime4D, engine.train.spike_guidance; ignored with rgb_only) ------
     fine_deformation: bool = True  # Eq. 6-10 fine spike feature added to the HexPlane feature
     fine_per_gaussian: bool = False  # per-Gaussian spike features (else one per instant)
-    fine_frozen_encoder: bool = False  # conv texture encoder frozen at its random init
+    # conv texture encoder frozen at its random init: each spike window is encoded once per run
+    # (EncodedWindows). Measured (README, Spike guidance), demo, 600 fast steps, eval between frames /
+    # moving px, seeds 0 / 1: trained 19.78 / 15.36, 20.06 / 17.63 -> frozen 20.04 / 15.65, 20.30 / 17.63
+    fine_frozen_encoder: bool = True
     fine_k_sub: int = 8  # sub-windows (attention tokens) per RGB interval
     fine_d_model: int = 64  # attention width of the fine branch
     fine_channels: int = 32  # conv channels of the spike texture encoder
     lr_fine: float = 1e-3  # learning rate of the fine branch
+    # spike windows' conv encoder output kept (EncodedWindows, issue 13): 1 = one pass per window
+    # and weights (renders of a step share it; exact), k > 1 = a window's encoder runs, forward and
+    # backward, at most every k steps, its tokens reused detached in between; 0 = no reuse
+    fine_encoder_every: int = 1
     spike_loss_weight: float = 1.0  # Eq. 17 (rate L1 in linear-luminance units)
     spike_window: int = 32  # m: spike frames per rendered window (paper: 32)
     spike_loss_mode: str = "counts"  # counts (expected counts) | if (m-step IF, surrogate gradient)
@@ -147,7 +154,9 @@ class TrainConfig:
     # HexPlane field needs it (demo 20.91 -> 20.25). README "Spike guidance".
     block_loss_weight: float | None = None  # None: 1.0 with the HexPlane field alone, else 0 (block_weight)
     block_interp: str = "flow"  # flow | linear (RIFE stand-ins)
-    between_every: int = 1  # a between-frame render every k deformation steps (0: never)
+    # a between-frame render every k deformation steps (0: never); k = 2 brings the guided step under
+    # 1.6x the RGB step but lost 1.5 dB on moving pixels on one of two demo seeds (README): 1
+    between_every: int = 1
     between_colocated_p: float = 0.75  # share of between renders at the spike camera's view
     between_scale: float = 0.5  # between-frame renders at this fraction of the RGB resolution
     spike_time_resolution_per_frame: float = 6.0  # HexPlane time cells per RGB frame with guidance

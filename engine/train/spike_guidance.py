@@ -33,7 +33,7 @@ from ..scene.fine_deformation import SpikeFineEncoder, project_to_grid
 from ..spike.features import SpikeWindowCache, bracket
 from ..spike.render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
 from .instants import InstantSampler
-from .interpolation import avg_pool_blocks, block_colour_loss, flow_interpolate, linear_blend
+from .interpolation import avg_pool_blocks, block_colour_loss, flow_consistency, flow_interpolate, linear_blend
 from .losses import LossTerm
 from .presets import block_weight
 
@@ -70,7 +70,7 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
             "rgb_times": rgb_times, "coverage": [float(stream.t0), float(stream.t_end)],
             "k_sub": int(cfg.fine_k_sub), "d_model": int(cfg.fine_d_model),
             "channels": int(cfg.fine_channels), "per_gaussian": bool(cfg.fine_per_gaussian),
-            "frozen_encoder": bool(cfg.fine_frozen_encoder),
+            "frozen_encoder": bool(cfg.fine_frozen_encoder), "encoder_every": int(cfg.fine_encoder_every),
             "change_gate": bool(cfg.fine_change_gate), "change_block": int(cfg.spike_change_block),
             "bounds_min": field.bounds_min.tolist(), "bounds_max": field.bounds_max.tolist(), "view": view}
     enc = SpikeFineEncoder(field.feature_dim, spec).to(field.bounds_min.device)
@@ -269,7 +269,10 @@ class SpikeGuidance:
         if key not in self._flows:
             _, flows = flow_interpolate(a, b, 0.5, return_flows=True)
             self._flows[key] = flows
-        return flow_interpolate(a, b, eps, flows=self._flows[key]).clamp(0, 1)[None]
+        cons = self.__dict__.setdefault("_consistency", {})
+        if key not in cons:  # occlusion maps of the pair: the same at every instant
+            cons[key] = flow_consistency(*self._flows[key])
+        return flow_interpolate(a, b, eps, flows=self._flows[key], consistency=cons[key]).clamp(0, 1)[None]
 
     TARGET_STEPS = 64  # block-colour targets are interpolated at 1/64-interval steps (cached)
     TARGET_CACHE_BYTES = 256 * 2 ** 20
@@ -377,6 +380,14 @@ def _fine_term(guid: SpikeGuidance):
     return fn
 
 
+def _tick_fine(tr, step, item, meta) -> None:
+    """Post-step hook: one step done for the fine encoder's kept windows (``fine_encoder_every``)."""
+    field = tr.model.deformation if tr.model is not None else None
+    enc = getattr(field, "fine_encoder", None)
+    if isinstance(enc, SpikeFineEncoder):
+        enc.encoded.tick()
+
+
 def guidance_factory(trainer) -> list:
     """Loss terms of the spike guidance for a (non rgb_only) run."""
     cfg = trainer.cfg
@@ -384,6 +395,9 @@ def guidance_factory(trainer) -> list:
         return []
     guid = SpikeGuidance(trainer)
     trainer.spike_guidance = guid
+    hooks_after = getattr(trainer, "post_step_hooks", None)
+    if hooks_after is not None:
+        hooks_after.append(_tick_fine)
     hooks = getattr(trainer, "deformation_hooks", None)
     if hooks is not None:  # the trainer calls it when the field is created or restored
         hooks.append(guid.ensure_fine)
