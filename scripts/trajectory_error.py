@@ -17,6 +17,13 @@ along its viewing ray through ``M(t) p`` (``ray_mm``) and across it (``plane_mm`
 across part in spike pixels (``plane_px``: distance between the two projections). Prints
 per run and object the mean of each (Gaussians weighted by opacity) and the counts.
 
+``--visible``: instead of every Gaussian with opacity > 0.1 near the object, only those the
+spike camera sees at ``t0``, weighted by their blending weight there (``visible_weights``:
+the sum over the spike view's pixels of ``T_i alpha_i``, read as the gradient of the rendered
+image's sum with respect to each Gaussian's colour), threshold 0.1 of a pixel. The Gaussians
+inside or behind a surface, which no render shows and no loss moves, otherwise dominate the
+means and medians.
+
 Also ``wobble_mm``: how far the distance from the spike camera ``rho = |x - c|`` of each such
 Gaussian departs between frames from the cubic Hermite curve (Catmull-Rom tangents) through
 its own ``rho`` at the RGB instants -- the in-between along-ray motion that the along-ray
@@ -178,6 +185,24 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
     return out
 
 
+def visible_weights(g: dict, view) -> np.ndarray:
+    """[N] blending weight of each Gaussian summed over ``view``'s pixels (``sum T_i alpha_i``):
+    the gradient of the render's summed first channel w.r.t. each Gaussian's colour. ``g`` is
+    ``Scene4D.gaussians_at(t)``."""
+    import torch
+
+    from engine.raster import rasterization
+    from engine.scene.model import view_tensors
+
+    vt = view_tensors(view, "cpu")
+    t = {k: torch.as_tensor(g[k], dtype=torch.float32) for k in ("means", "quats", "scales", "opacities", "colors")}
+    colors = t["colors"].clone().requires_grad_(True)
+    img, _, _ = rasterization(t["means"], t["quats"], t["scales"], t["opacities"], colors, vt["viewmat"], vt["K"],
+                              vt["width"], vt["height"], render_depth=False)
+    img[..., 0].sum().backward()
+    return colors.grad[:, 0].numpy().astype(np.float64)
+
+
 def main(argv=None) -> int:
     import torch
 
@@ -191,6 +216,8 @@ def main(argv=None) -> int:
     ap.add_argument("--per-interval", type=int, default=4)
     ap.add_argument("--radius", type=float, default=None)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--visible", action="store_true",
+                    help="only the Gaussians the spike camera sees at t0, weighted by their blending weight")
     args = ap.parse_args(argv)
     cap = load_capture(args.capture)
     truth = load_object_truth(cap.root)
@@ -202,8 +229,11 @@ def main(argv=None) -> int:
     res = {}
     for run in args.runs:
         scene = load_run(run)
-        with torch.no_grad():
-            opac = scene.gaussians_at(rgb_times[0])["opacities"]
+        if args.visible:
+            opac = visible_weights(scene.gaussians_at(rgb_times[0]), view)
+        else:
+            with torch.no_grad():
+                opac = scene.gaussians_at(rgb_times[0])["opacities"]
         r = trajectory_errors(lambda t: scene.gaussians_at(t)["means"].astype(np.float64), opac, truth, rgb_times,
                               view, per_interval=args.per_interval, radius=args.radius)
         res[run] = r

@@ -87,3 +87,17 @@ def test_wobble_measures_along_ray_departure_from_the_rgb_curve(tmp_path):
     r = te.trajectory_errors(lambda t: exact(t) + (0.0 if t in rgb else 1.0) * np.array([0.0, 0.0, 0.02]), opac,
                              truth, rgb, view, per_interval=3)["ball"]
     assert r["wobble_mm"] < 4.0
+
+
+def test_visible_weights_see_the_front_gaussian_not_the_hidden_one():
+    """--visible: the blending weight of a Gaussian hidden behind an opaque one is ~0, the
+    front one's is its footprint in pixels, one outside the view gets nothing."""
+    view = View(intrinsics=Intrinsics(40, 30, 35.0, 35.0, 20.0, 15.0),
+                c2w=look_at_c2w((0.0, -2.0, 0.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)), time=0.0)
+    g = {"means": np.array([[0.0, 0.0, 0.0], [0.0, 0.5, 0.0], [5.0, 0.0, 0.0]], np.float32),
+         "quats": np.tile(np.array([1.0, 0, 0, 0], np.float32), (3, 1)),
+         "scales": np.array([[0.3] * 3, [0.04] * 3, [0.15] * 3], np.float32),  # the hidden one inside the core
+         "opacities": np.array([0.99, 0.99, 0.99], np.float32),
+         "colors": np.full((3, 3), 0.5, np.float32)}
+    w = te.visible_weights(g, view)
+    assert w.shape == (3,) and w[0] > 10.0 and w[1] < 0.05 * w[0] and w[2] == 0.0
