@@ -71,7 +71,7 @@ def resolve_run_dir(scene) -> str:
     return str((base / capture_name(scene)).resolve())
 
 
-def skip_overrides(settings) -> dict:
+def advanced_overrides(settings) -> dict:
     """The advanced settings of ``scene.bt4d`` as training overrides (only those that differ
     from the engine's defaults: a switch turned on, a motion other than the first item)."""
     out = {}
@@ -282,7 +282,7 @@ class BT4D_OT_reconstruct(Operator):
         run_dir = resolve_run_dir(scene)
         resume = r.resume if self.use_scene_resume else self.resume
         seconds = float(self.seconds if self.seconds >= 0 else s.seconds)
-        overrides = skip_overrides(s)
+        overrides = advanced_overrides(s)
         if self.iterations > 0:
             seconds = None
             overrides["iterations"] = int(self.iterations)

@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import math
 
-from capture_novel import CAMERA_EYES, TARGET, build_objects  # noqa: F401  (re-exported: the scene API)
+# the novel scene's rig, eval0 and set (re-exported: the scene API of make_capture.SCENES)
+from capture_novel import CAMERA_EYES, EVAL0_ANGLES, TARGET, build_objects  # noqa: F401
 
 MOVING = ("ball", "turntable", "cube")
-EVAL0_ANGLES = (-15.0, 10.0)  # held out, 15 deg to the right (+X) and 10 deg above the pair
 BOUNCE_PERIOD = 2.0 / 30.0    # s: one bounce per two RGB frames
 FIRST_IMPACT = 0.5 / 30.0     # s: impacts half-way between RGB instants
 VIBRATION_HZ = 15.0           # half a period per RGB interval: zero at every RGB instant

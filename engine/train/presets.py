@@ -231,9 +231,6 @@ def _quality() -> TrainConfig:
 PRESETS = {"fast": _fast, "balanced": _balanced, "quality": _quality}
 
 
-_OPTIONAL_FLOATS = ("block_loss_weight",)  # None means "by the motion representation"
-
-
 def block_weight(cfg: TrainConfig) -> float:
     """The block colour loss's weight (Eq. 20): ``cfg.block_loss_weight``, or when it is None
     1.0 for the HexPlane field alone and 0 for per-Gaussian trajectories (measured, above)."""
@@ -258,9 +255,9 @@ def apply_overrides(cfg: TrainConfig, overrides: dict | None) -> TrainConfig:
             v = bool(v)
         elif isinstance(default, int) and not isinstance(default, bool):
             v = int(v)
-        elif isinstance(default, float) or (default is None and isinstance(v, (int, float, str))
-                                            and k in _OPTIONAL_FLOATS):
-            v = float(v)
+        elif isinstance(default, float) or (default is None and v is not None
+                                            and names[k].type == "float | None"):
+            v = float(v)  # an optional float (None: decided by other fields) given a value
         changes[k] = v
     return dataclasses.replace(cfg, **changes)
 
