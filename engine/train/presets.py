@@ -80,6 +80,8 @@ class TrainConfig:
     # x extent: with traj_carry=flow, hidden Gaussians take the motion of the nearest carried /
     # still one within this distance (0: off)
     traj_carry_hidden: float = 0.05
+    traj_carry_flow: str = "lk"       # optical flow of the carry: lk (engine.train.interpolation) | dis (OpenCV DIS)
+    traj_carry_fb: float = 0.0        # px: forward-backward flow check of the carry (0: off; scene_flow.carry_by_flow)
     traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
     rigidity_weight: float = 0.0      # Luiten et al. local rigidity (rigid + rot + iso over kNN) / extent; 0: off
     rigidity_k: int = 8               # neighbours of the rigidity prior

@@ -17,6 +17,7 @@ the stereo's planar depth) with bool confidence masks [H, W].
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 
@@ -28,8 +29,26 @@ from .interpolation import lk_flow
 __all__ = ["image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden", "carry_trajectories"]
 
 
-def image_flow(img_a: np.ndarray, img_b: np.ndarray) -> np.ndarray:
-    """Dense flow [H, W, 2] (x, y pixels) with ``a(p) ~ b(p + flow(p))`` (engine.interpolation.lk_flow)."""
+def _grey8(img: np.ndarray) -> np.ndarray:
+    """8-bit grey of a linear RGB image [H, W, >=3] (sRGB-like gamma: DIS works on 8-bit)."""
+    rgb = np.clip(np.asarray(img, np.float32)[..., :3], 0.0, 1.0)
+    grey = rgb @ np.array([0.299, 0.587, 0.114], np.float32)
+    return (np.power(grey, 1.0 / 2.2) * 255.0 + 0.5).astype(np.uint8)
+
+
+def image_flow(img_a: np.ndarray, img_b: np.ndarray, method: str = "lk") -> np.ndarray:
+    """Dense flow [H, W, 2] (x, y pixels) with ``a(p) ~ b(p + flow(p))``.
+
+    ``method``: ``"lk"`` -- our block matching + Lucas-Kanade pyramid
+    (engine.interpolation.lk_flow); ``"dis"`` -- OpenCV's DIS optical flow (Kroeger et al.,
+    ECCV 2016; medium preset, with variational refinement) on the 8-bit grey images. On the
+    fast scene's train pairs, moving pixels: 84 % pass the forward-backward check with DIS
+    against 29 % with LK, at 14 ms against ~2.8 s per flow (2-core VM, load 6)."""
+    if method == "dis":
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        return dis.calc(_grey8(img_a), _grey8(img_b), None).astype(np.float32)
+    if method != "lk":
+        raise ValueError(f"unknown optical flow method {method!r}: expected lk or dis")
     a = torch.as_tensor(np.asarray(img_a, np.float32)[..., :3]).permute(2, 0, 1)[None]
     b = torch.as_tensor(np.asarray(img_b, np.float32)[..., :3]).permute(2, 0, 1)[None]
     return lk_flow(a, b)[0].permute(1, 2, 0).numpy()
@@ -51,12 +70,34 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return img[vi, ui]
 
 
+def _sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of ``img`` [H, W, C] at pixel coordinates ``uv`` [N, 2] (corner at (0, 0),
+    pixel centres at +0.5, clamped at the border)."""
+    h, w = img.shape[:2]
+    x = np.clip(uv[:, 0] - 0.5, 0, w - 1)
+    y = np.clip(uv[:, 1] - 0.5, 0, h - 1)
+    x0 = np.minimum(np.floor(x).astype(int), w - 2) if w > 1 else np.zeros(len(x), int)
+    y0 = np.minimum(np.floor(y).astype(int), h - 2) if h > 1 else np.zeros(len(y), int)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x1])
+            + fy * ((1 - fx) * img[y1, x0] + fx * img[y1, x1]))
+
+
 def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_a: np.ndarray, ok_a: np.ndarray,
                   depth_b: np.ndarray, ok_b: np.ndarray, *, depth_tol: float = 0.05,
-                  min_flow_px: float = 0.5, return_still: bool = False):
+                  min_flow_px: float = 0.5, return_still: bool = False, flow_ba: np.ndarray | None = None,
+                  fb_tol_px: float = 1.0):
     """(positions at ``t_b`` [N, 3], carried bool [N]) for Gaussians at ``positions`` (``t_a``)
     seen by the static camera ``view``; rows not carried are returned unchanged. With
-    ``return_still`` also the bool [N] of visible surface Gaussians that do not move."""
+    ``return_still`` also the bool [N] of visible surface Gaussians that do not move.
+
+    ``flow_ba`` (the flow back from ``t_b``) turns on the forward-backward check: a pixel
+    whose round trip misses by more than ``fb_tol_px`` (+ 10 % of its flow) is covered at
+    ``t_b`` (or its flow is wrong), and lifting it with the depth there would put it on the
+    surface in front -- on the fast scene the cube's Gaussians landed on the ball crossing it,
+    both became translucent ghosts. Those Gaussians are left undecided (the caller gives them
+    their nearest decided neighbour's motion)."""
     pos = np.asarray(positions, np.float64)
     uv, z = project_points(view, pos)
     h, w = depth_a.shape
@@ -69,8 +110,12 @@ def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_
     inside_b = (uv_b[:, 0] >= 0) & (uv_b[:, 0] < w) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] < h)
     uv_b = np.where(inside_b[:, None], uv_b, 0.0)
     db = _sample(depth_b, uv_b)
-    moving = np.linalg.norm(f, axis=1) >= min_flow_px
+    fl = np.linalg.norm(f, axis=1)
+    moving = fl >= min_flow_px
     carried = surface & inside_b & _sample(ok_b, uv_b) & moving
+    if flow_ba is not None:
+        back = _sample_bilinear(flow_ba, uv_b)
+        carried &= np.linalg.norm(f + back, axis=1) <= fb_tol_px + 0.1 * fl
     out = pos.copy()
     if carried.any():
         # keep the Gaussian's offset from the surface along the ray (it sat at z, the surface at da)
@@ -125,9 +170,12 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
         fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
         if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
             continue
-        flow = image_flow(fa.load_rgb(), fb.load_rgb())
-        new, ok, st = carry_by_flow(pos_i, trainer.capture.view(fa), flow, *pri[id(fa)], *pri[id(fb)],
-                                    return_still=True)
+        img_a, img_b = fa.load_rgb(), fb.load_rgb()
+        fb_tol = float(trainer.cfg.traj_carry_fb)
+        method = trainer.cfg.traj_carry_flow
+        back = image_flow(img_b, img_a, method) if fb_tol > 0 else None
+        new, ok, st = carry_by_flow(pos_i, trainer.capture.view(fa), image_flow(img_a, img_b, method), *pri[id(fa)],
+                                    *pri[id(fb)], return_still=True, flow_ba=back, fb_tol_px=fb_tol)
         ok &= todo
         delta[ok] = new[ok] - pos_i[ok]
         todo &= ~ok
