@@ -40,6 +40,7 @@ from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
 from engine.scene import model as scene_model
+from engine.scene import trajectory
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
 from engine.train import interpolation, spike_guidance
@@ -273,6 +274,9 @@ VARIANTS = {
                     "overrides": {"fine_encoder_every": 4}},
     "fine-frozen": {"doc": "fine_frozen_encoder (encoded once per window)", "hexplane_sampler": "auto",
                     "overrides": {"fine_frozen_encoder": True}},
+    "traj-reference": {"doc": "trajectories evaluated from column slices (plain autograd), as before the "
+                              "column-weight backward", "hexplane_sampler": "auto",
+                       "patches": {(trajectory, "EVALUATOR"): "torch"}},
 }
 
 
