@@ -42,7 +42,12 @@ RGB instants (``u`` = 0 or 1) both give the junction value and its gradient bit 
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
+
+from ..numba_cache import LazyKernels
+
+KERNELS = LazyKernels(__package__, "_trajectory_kernels")  # the residual-square term's numba pair
 
 __all__ = ["num_controls", "num_knots", "segment_of", "segment_weights", "bezier_controls", "evaluate",
            "evaluate_reference", "junctions", "extrapolate_junctions", "inner_residuals", "inner_residual_sq",
@@ -99,29 +104,35 @@ def inner_residuals(params: torch.Tensor) -> torch.Tensor:
 
 
 class _ResidualSq(torch.autograd.Function):
-    """``(inner_residuals(params) ** 2).sum(-1)`` [N, F - 1, 2] whose backward writes into
-    the residual columns only (the reference's slice backward zero-fills two tensors)."""
+    """``(inner_residuals(params) ** 2).sum(-1)`` [N, F - 1, 2] in one numba pass, and a
+    backward that writes the gradient in one more (the reference's slices zero-fill and
+    copy two full tensors: 6.9 against ~1 ms at 20k Gaussians, 7 knots, measured)."""
 
     @staticmethod
     def forward(ctx, params):
-        d = inner_residuals(params)
+        k = KERNELS.module
+        p = params.detach().numpy()
+        out = np.empty((p.shape[0], (p.shape[1] - 1) // 3, 2), p.dtype)
+        k.residual_sq(p, out)
         ctx.save_for_backward(params)
-        return (d ** 2).sum(-1)
+        return torch.from_numpy(out)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         (params,) = ctx.saved_tensors
-        g = torch.zeros_like(params)
+        p = params.detach().numpy()
+        out = np.empty_like(p)
         # what autograd computes for ``d ** 2`` (pow's backward: grad * (2 * d)), bit for bit
-        inner_residuals(g).copy_(grad.unsqueeze(-1) * (inner_residuals(params) * 2.0))
-        return g
+        KERNELS.module.residual_sq_backward(p, grad.detach().to(params.dtype).numpy(), out)
+        return torch.from_numpy(out)
 
 
 def inner_residual_sq(params: torch.Tensor) -> torch.Tensor:
     """Squared length of each inner residual, ``(inner_residuals(params) ** 2).sum(-1)``:
     [N, F - 1, 2]; value and gradient bit for bit those of that expression."""
-    if EVALUATOR == "torch" or params.shape[1] == 1:
+    if (EVALUATOR == "torch" or params.shape[1] == 1 or params.device.type != "cpu" or not params.is_contiguous()
+            or params.dtype not in (torch.float32, torch.float64) or KERNELS.load() is None):
         return (inner_residuals(params) ** 2).sum(-1)
     return _ResidualSq.apply(params)
 
@@ -268,3 +279,15 @@ def default_knots(frame_times) -> list[float]:
     ks = sorted({round(float(t), 9) for t in frame_times})
     return ks if ks else [0.0]
 
+
+
+def warmup() -> float:
+    """Compile (first run on a machine) or load the residual-square kernels now, in the
+    layouts training passes them (float32; the gradient of a ``mean``); seconds taken."""
+    import time
+
+    t0 = time.perf_counter()
+    if KERNELS.load() is not None:
+        p = torch.zeros(3, num_controls(3), 3, requires_grad=True)
+        inner_residual_sq(p).mean().backward()
+    return time.perf_counter() - t0
