@@ -8,7 +8,6 @@ autograd backward ``grad * (2 * d)``; tests compare bit for bit.
 """
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
 
 from ..numba_cache import install_cache_locator
