@@ -36,23 +36,35 @@ def _fma32(typingctx, a, b, c):
 
 
 @njit(cache=True, nogil=True)
-def moments(g, m, v, w1, b2, c2):
-    """``m.lerp_(g, w1)``; ``v.mul_(b2).addcmul_(g, g, value=c2)`` (in place, flat float32)."""
+def moments(g, m, v, w1, b2, c2, root_in):
+    """``m.lerp_(g, w1)``; ``v.mul_(b2).addcmul_(g, g, value=c2)`` (in place, flat float32);
+    ``root_in`` gets ``v`` with its zeros replaced by 1 (what torch's sqrt is given next:
+    its MKL kernel takes a slow path on zeros, 5x slower on the trajectories' moments,
+    ~70 % zeros; its value at any other element does not depend on its neighbours,
+    measured)."""
+    one = np.float32(1.0)
     if abs(w1) < np.float32(0.5):  # torch's lerp: two formulas around weight 0.5
         for i in range(g.size):
             gi = g[i]
             m[i] = _fma32(w1, gi - m[i], m[i])
-            v[i] = _fma32(c2 * gi, gi, v[i] * b2)
+            vi = _fma32(c2 * gi, gi, v[i] * b2)
+            v[i] = vi
+            root_in[i] = vi if vi != 0 else one
     else:
-        w1m = w1 - np.float32(1.0)
+        w1m = w1 - one
         for i in range(g.size):
             gi = g[i]
             m[i] = _fma32(w1m, gi - m[i], gi)
-            v[i] = _fma32(c2 * gi, gi, v[i] * b2)
+            vi = _fma32(c2 * gi, gi, v[i] * b2)
+            v[i] = vi
+            root_in[i] = vi if vi != 0 else one
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def update(p, m, sq, bc2s, eps, neg_step):
-    """``p.addcdiv_(m, sq / bc2s + eps, value=neg_step)`` (in place, flat float32)."""
+def update(p, m, v, root, bc2s, eps, neg_step):
+    """``p.addcdiv_(m, sqrt(v) / bc2s + eps, value=neg_step)`` (in place, flat float32) with
+    ``root`` = torch's square roots of :func:`moments`' ``root_in`` (sqrt(0) = 0)."""
+    zero = np.float32(0.0)
     for i in range(p.size):
-        p[i] = p[i] + (neg_step * m[i]) / (sq[i] / bc2s + eps)
+        sq = root[i] if v[i] != 0 else zero
+        p[i] = p[i] + (neg_step * m[i]) / (sq / bc2s + eps)

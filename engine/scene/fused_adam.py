@@ -4,13 +4,16 @@ With per-Gaussian trajectories the Gaussians carry ~190 floats each (133 of them
 curves' control points, ``engine.scene.trajectory``), and ``torch.optim.Adam``'s CPU
 single-tensor step walks every parameter seven times (``lerp_``, ``mul_``, ``addcmul_``,
 ``sqrt``, ``div``, ``add_``, ``addcdiv_``): 15-16 ms of a 80-90 ms RGB deformation step on
-the demo (README, step speed). :class:`FusedAdam` is ``torch.optim.Adam`` (same
-constructor, state, ``state_dict``, so densification's state surgery and checkpoints are
-unchanged) whose ``step`` updates the moments in one numba pass, takes torch's ``sqrt``,
-and updates the parameter in a second numba pass (:mod:`engine.scene._adam_kernels`),
-rounding exactly as torch does. ``torch.optim.Adam(fused=True)`` is faster still but not
-the same numbers (+-1 ulp in ~5 % of the elements per step, measured), so training would
-no longer reproduce runs made before.
+the demo (README, step speed), most of it in ``sqrt``: torch's CPU square root (MKL)
+takes a slow path on zeros, and ~70 % of the curves' moments are zero (columns no render
+has reached yet). :class:`FusedAdam` is ``torch.optim.Adam`` (same constructor, state,
+``state_dict``, so densification's state surgery and checkpoints are unchanged) whose
+``step`` updates the moments in one numba pass, takes torch's ``sqrt`` of the nonzero ones
+(zeros replaced by 1, their root set back to 0), and updates the parameter in a second
+numba pass (:mod:`engine.scene._adam_kernels`), rounding exactly as torch does.
+``torch.optim.Adam(fused=True)`` is faster still but not the same numbers (+-1 ulp in ~5 %
+of the elements per step, measured), so training would no longer reproduce runs made
+before.
 
 Exactness rests on how torch's CPU kernels round (fused multiply-adds in ``lerp_`` and
 ``addcmul_``), so :func:`exact` compares one step on random tensors with torch's before
@@ -50,9 +53,10 @@ def _fused_update(p, grad, m, v, step: float, lr: float, beta1: float, beta2: fl
     step_size = lr / bias_correction1
     bias_correction2_sqrt = bias_correction2 ** 0.5
     pf, gf, mf, vf = (t.detach().view(-1).numpy() for t in (p, grad, m, v))
-    k.moments(gf, mf, vf, f32(1 - beta1), f32(beta2), f32(1 - beta2))
-    sq = torch.sqrt(v.detach().view(-1), out=scratch[:pf.size])  # torch's (MKL's) rounding
-    k.update(pf, mf, sq.numpy(), f32(bias_correction2_sqrt), f32(eps), f32(-step_size))
+    root = scratch[:pf.size]
+    k.moments(gf, mf, vf, f32(1 - beta1), f32(beta2), f32(1 - beta2), root.numpy())
+    torch.sqrt(root, out=root)  # torch's (MKL's) rounding
+    k.update(pf, mf, vf, root.numpy(), f32(bias_correction2_sqrt), f32(eps), f32(-step_size))
 
 
 def exact() -> bool:
@@ -81,6 +85,8 @@ def _self_check() -> bool:
     for _ in range(3):
         for a, b in zip(ref, fus):
             gr = torch.randn(a.shape, generator=gen) * torch.rand(a.shape, generator=gen).pow(8) * 10.0
+            gr *= torch.rand(a.shape, generator=gen) < 0.5  # exact zeros, as in untouched columns
+            gr.view(-1)[: gr.numel() // 3] = 0.0  # a block never touched: zero moments
             a.grad, b.grad = gr.clone(), gr.clone()
         o_ref.step()
         o_fus._fused_step()
