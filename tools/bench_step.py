@@ -14,6 +14,8 @@ and charges each step's *exclusive* wall time to its parts (:class:`StepProfiler
 * ``losses``: the loss terms' forward (``LossTerm.fn``; the spike branch's targets included);
 * ``optimizer``: every ``Adam.step``;
 * ``densify``: densification statistics, densify-and-prune, opacity reset;
+* ``admit``: the time curriculum admitting the next RGB instant (``Trainer._carry_forward``:
+  with trajectories, optical flow + stereo carry and the hidden Gaussians' neighbour search);
 * ``other``: the rest of the step (the losses' and glue's backward, Python).
 
 Stages: ``static`` (RGB run), ``rgb_deform`` and ``guided_deform`` (the deformation stage
@@ -51,7 +53,7 @@ from engine.train.trainer import Trainer
 HELP = "profile a training step per stage: rasterizer, deformation field, fine branch, losses, optimizer"
 
 CATEGORIES = ("raster_fwd", "raster_bwd", "field_fwd", "fine_fwd", "field_bwd", "losses", "optimizer",
-              "densify", "other")
+              "densify", "admit", "other")
 
 
 CLOCKS = ("wall", "cpu")
@@ -149,6 +151,7 @@ class StepProfiler:
             self._wrap(cls, "forward", "fine_fwd")
         for name in ("add_densification_stats", "densify_and_prune", "reset_opacity"):
             self._wrap(GaussianModel, name, "densify")
+        self._wrap(Trainer, "_carry_forward", "admit")
         for cls in (torch.optim.Adam, fused_adam.FusedAdam):
             self._wrap(cls, "step", "optimizer")
 
