@@ -135,3 +135,23 @@ def test_bad_shapes_are_refused():
         evaluate(torch.zeros(3, 5, 3), knots, 0.0)
     with pytest.raises(ValueError, match="knots need"):
         evaluate(torch.zeros(3, num_controls(len(knots))), knots, 0.0)
+
+
+def test_residual_square_with_zero_residuals_adds_no_gradient_tensor():
+    """All residuals zero (RGB-only training): no gradient from the term, the same numbers
+    as the expression's all-zero gradient added to the curves' gradient; a residual whose
+    square underflows still gets its gradient."""
+    knots = KNOT_SETS["seven"]
+    p = _params(knots, n=50, c=3, dtype=torch.float32, seed=4)
+    p[:, 1::3] = 0.0
+    p[:, 2::3] = 0.0
+    for tiny in (0.0, 1e-30):
+        p[7, 4, 1] = tiny
+        a = p.clone().requires_grad_(True)
+        b = p.clone().requires_grad_(True)
+        w = torch.randn(50, 3)
+        ((evaluate(a, knots, knots[2]) * w).sum() + inner_residual_sq(a).mean() / 0.37 ** 2).backward()
+        ((evaluate_reference(b, knots, knots[2]) * w).sum() + (inner_residuals(b) ** 2).sum(-1).mean()
+         / 0.37 ** 2).backward()
+        assert torch.equal(a.grad, b.grad)
+        assert (a.grad[7, 4, 1] != 0) == (tiny != 0.0)

@@ -17,17 +17,23 @@ install_cache_locator(__name__)
 
 @njit(cache=True, nogil=True)
 def residual_sq(params, out):
-    """``out[n, i, j] = sum_c params[n, 3 i + 1 + j, c] ** 2`` ([N, F - 1, 2])."""
+    """``out[n, i, j] = sum_c params[n, 3 i + 1 + j, c] ** 2`` ([N, F - 1, 2]); returns
+    whether any residual is nonzero (its square may underflow to 0: the values are tested)."""
     n, segs = out.shape[0], out.shape[1]
     C = params.shape[2]
+    nonzero = False
     for r in range(n):
         for i in range(segs):
             for j in range(2):
-                acc = params[r, 3 * i + 1 + j, 0] * params[r, 3 * i + 1 + j, 0]
+                x = params[r, 3 * i + 1 + j, 0]
+                nonzero |= x != 0
+                acc = x * x
                 for c in range(1, C):
                     x = params[r, 3 * i + 1 + j, c]
+                    nonzero |= x != 0
                     acc = acc + x * x
                 out[r, i, j] = acc
+    return nonzero
 
 
 @njit(cache=True, nogil=True)

@@ -113,7 +113,7 @@ class _ResidualSq(torch.autograd.Function):
         k = KERNELS.module
         p = params.detach().numpy()
         out = np.empty((p.shape[0], (p.shape[1] - 1) // 3, 2), p.dtype)
-        k.residual_sq(p, out)
+        ctx.nonzero = bool(k.residual_sq(p, out))
         ctx.save_for_backward(params)
         return torch.from_numpy(out)
 
@@ -121,6 +121,11 @@ class _ResidualSq(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         (params,) = ctx.saved_tensors
+        if not ctx.nonzero and bool(torch.isfinite(grad).all()):
+            # every residual is 0 (RGB-only training keeps them there): the gradient,
+            # grad * (2 * 0), is all zeros, and None says so without a full tensor that
+            # autograd would then add to the curves' gradient (x + 0 == x: same numbers)
+            return None
         p = params.detach().numpy()
         out = np.empty_like(p)
         # what autograd computes for ``d ** 2`` (pow's backward: grad * (2 * d)), bit for bit
