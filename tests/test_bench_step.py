@@ -77,3 +77,18 @@ def test_guided_before_variant_patches_the_old_code_paths_and_restores_them():
         old = interpolation._flow_length(f)
     assert (interpolation._flow_length, spike_guidance.flow_consistency) == (fl, cons)
     assert torch.allclose(interpolation._flow_length(f), old, atol=1e-6)  # same values, other code path
+
+
+def test_trajectory_step_variants_switch_the_old_paths_and_restore_them():
+    from engine.scene import fused_adam, trajectory
+    from engine.train import scene_flow
+
+    now = (trajectory.EVALUATOR, fused_adam.ENABLED, scene_flow.DENSE_SEARCH)
+    assert now == ("fast", True, False)
+    with bench_step.variant("traj-before"):
+        assert (trajectory.EVALUATOR, fused_adam.ENABLED, scene_flow.DENSE_SEARCH) == ("torch", False, True)
+    for name, attr in (("traj-reference", (trajectory, "EVALUATOR")), ("adam-torch", (fused_adam, "ENABLED")),
+                       ("nn-dense", (scene_flow, "DENSE_SEARCH"))):
+        with bench_step.variant(name):
+            assert getattr(*attr) != now[("traj-reference", "adam-torch", "nn-dense").index(name)]
+    assert (trajectory.EVALUATOR, fused_adam.ENABLED, scene_flow.DENSE_SEARCH) == now

@@ -150,3 +150,33 @@ def test_cached_consistency_gives_the_same_interpolation():
     for eps in (0.0, 0.3, 0.8):
         assert torch.equal(flow_interpolate(a, b, eps, flows=flows, consistency=cons),
                            flow_interpolate(a, b, eps, flows=flows))
+
+
+def _block_match_one_at_a_time(A, Bm, flow, radius, win):
+    """The search before issue 13 batched its candidates: the reference."""
+    from engine.train.interpolation import _box
+
+    best_cost = _box((A - Bm).abs().sum(1, keepdim=True), win)
+    best = torch.zeros_like(flow)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            cand = flow.clone()
+            cand[:, 0] += dx
+            cand[:, 1] += dy
+            cost = _box((A - warp(Bm, cand)).abs().sum(1, keepdim=True), win)
+            take = cost < best_cost - 1e-7
+            best = torch.where(take, cand, best)
+            best_cost = torch.where(take, cost, best_cost)
+    return best
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 60, 80), (2, 1, 17, 23), (1, 3, 4, 5)])
+def test_batched_block_match_is_bit_for_bit_the_loop(shape):
+    from engine.train.interpolation import _block_match
+
+    g = torch.Generator().manual_seed(shape[2])
+    A, Bm = torch.rand(shape, generator=g), torch.rand(shape, generator=g)
+    flow = torch.randn(shape[0], 2, *shape[2:], generator=g) * 2.0
+    Bm[..., :3, :] = A[..., :3, :]  # exact ties with the zero flow somewhere
+    for radius, win in ((2, 5), (1, 3)):
+        assert torch.equal(_block_match(A, Bm, flow, radius, win), _block_match_one_at_a_time(A, Bm, flow, radius, win))

@@ -14,6 +14,8 @@ and charges each step's *exclusive* wall time to its parts (:class:`StepProfiler
 * ``losses``: the loss terms' forward (``LossTerm.fn``; the spike branch's targets included);
 * ``optimizer``: every ``Adam.step``;
 * ``densify``: densification statistics, densify-and-prune, opacity reset;
+* ``admit``: the time curriculum admitting the next RGB instant (``Trainer._carry_forward``:
+  with trajectories, optical flow + stereo carry and the hidden Gaussians' neighbour search);
 * ``other``: the rest of the step (the losses' and glue's backward, Python).
 
 Stages: ``static`` (RGB run), ``rgb_deform`` and ``guided_deform`` (the deformation stage
@@ -39,10 +41,11 @@ from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
+from engine.scene import fused_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import interpolation, spike_guidance
+from engine.train import interpolation, scene_flow, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -50,7 +53,7 @@ from engine.train.trainer import Trainer
 HELP = "profile a training step per stage: rasterizer, deformation field, fine branch, losses, optimizer"
 
 CATEGORIES = ("raster_fwd", "raster_bwd", "field_fwd", "fine_fwd", "field_bwd", "losses", "optimizer",
-              "densify", "other")
+              "densify", "admit", "other")
 
 
 CLOCKS = ("wall", "cpu")
@@ -148,7 +151,8 @@ class StepProfiler:
             self._wrap(cls, "forward", "fine_fwd")
         for name in ("add_densification_stats", "densify_and_prune", "reset_opacity"):
             self._wrap(GaussianModel, name, "densify")
-        for cls in (torch.optim.Adam,):
+        self._wrap(Trainer, "_carry_forward", "admit")
+        for cls in (torch.optim.Adam, fused_adam.FusedAdam):
             self._wrap(cls, "step", "optimizer")
 
         orig_forward = DeformationField.forward
@@ -273,6 +277,18 @@ VARIANTS = {
                     "overrides": {"fine_encoder_every": 4}},
     "fine-frozen": {"doc": "fine_frozen_encoder (encoded once per window)", "hexplane_sampler": "auto",
                     "overrides": {"fine_frozen_encoder": True}},
+    "traj-reference": {"doc": "trajectories evaluated from column slices (plain autograd), as before the "
+                              "column-weight backward", "hexplane_sampler": "auto",
+                       "patches": {(trajectory, "EVALUATOR"): "torch"}},
+    "adam-torch": {"doc": "the Gaussians' optimizer steps with torch.optim.Adam's own (seven-pass) update, "
+                          "as before FusedAdam", "hexplane_sampler": "auto",
+                   "patches": {(fused_adam, "ENABLED"): False}},
+    "nn-dense": {"doc": "hidden Gaussians' nearest carried neighbour by a dense torch.cdist, as before the grid "
+                        "search", "hexplane_sampler": "auto", "patches": {(scene_flow, "DENSE_SEARCH"): True}},
+    "traj-before": {"doc": "all three of traj-reference, adam-torch and nn-dense: the trajectory step as on "
+                           "main before this work", "hexplane_sampler": "auto",
+                    "patches": {(trajectory, "EVALUATOR"): "torch", (fused_adam, "ENABLED"): False,
+                                (scene_flow, "DENSE_SEARCH"): True}},
 }
 
 

@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .fused_adam import FusedAdam
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
@@ -188,7 +190,7 @@ class GaussianModel(nn.Module):
                "opacity_logits": cfg.lr_opacities, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
         groups = [{"params": [getattr(self, n)], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
         groups += [{"params": [getattr(self, n)], "lr": self._extra_lr(n), "name": n} for n in self.extra_lrs]
-        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.optimizer = FusedAdam(groups, lr=0.0, eps=1e-15)
         self._lr_means = (cfg.lr_means * self.extent, cfg.lr_means_final * self.extent)
 
     def update_learning_rate(self, progress: float) -> float:

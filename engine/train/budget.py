@@ -19,7 +19,10 @@ import numpy as np
 import torch
 
 from ..raster import warmup as raster_warmup
+from ..scene.fused_adam import warmup as adam_warmup
 from ..scene.hexplane_fused import warmup as hexplane_warmup
+from ..scene.trajectory import warmup as trajectory_warmup
+from .nearest import warmup as nearest_warmup
 from .presets import TrainConfig
 
 __all__ = ["DEFORM_REESTIMATE_EVERY", "END_RESERVE_S", "REESTIMATE_FRACTION", "measure_step_seconds", "reestimate_at",
@@ -124,17 +127,21 @@ def reestimate_deform_steps(trainer, done: int, step_seconds: float, remaining_s
 
 
 def warm_up_runtime(device) -> float:
-    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the rasterizer's
-    and the fused HexPlane sampler's numba kernels that every training step calls, and import what torch imports on
-    its first optimizer (torch._dynamo: 2-5 s), so that none of it is charged to a
-    ``--seconds`` budget (issue 13: a 60 s first Reconstruct in Blender got 20 steps).
-    Returns the seconds taken (run.json ``warmup_seconds``). (The PNG row decoder's kernel is
-    not warmed: its numba cache is keyed by file, not import name, so inside Blender a
-    cache written by ``python -m engine`` cannot be loaded (the same ModuleNotFoundError the
-    rasterizer's per-import-name cache locator avoids): it stays lazy, as before.)"""
+    """Compile (first run on a machine: ~30 s) or load from cache (~0.5 s) the numba kernels
+    that training calls (the rasterizer's, the fused HexPlane sampler's, FusedAdam's, the
+    neighbour search's), and import what torch imports on its first optimizer (torch._dynamo:
+    2-5 s), so that none of it is charged to a ``--seconds`` budget (issue 13: a 60 s first
+    Reconstruct in Blender got 20 steps). Returns the seconds taken (run.json
+    ``warmup_seconds``). (The PNG row decoder's kernel is not warmed: its numba cache is
+    keyed by file, not import name, so inside Blender a cache written by ``python -m
+    engine`` cannot be loaded (the same ModuleNotFoundError the rasterizer's per-import-name
+    cache locator avoids): it stays lazy, as before.)"""
     t0 = time.perf_counter()
     if torch.device(device).type == "cpu":
         raster_warmup("cpu")
         hexplane_warmup()  # the fused HexPlane sampler's kernels (engine.scene.hexplane_fused)
+        adam_warmup()  # the Gaussians' optimizer's kernels and its exactness check (engine.scene.fused_adam)
+        nearest_warmup()  # the trajectories' hidden-Gaussian neighbour search (engine.train.nearest)
+        trajectory_warmup()  # the trajectories' residual-square term (engine.scene.trajectory)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
     return time.perf_counter() - t0

@@ -74,18 +74,26 @@ def _median3(x: torch.Tensor) -> torch.Tensor:
 
 def _block_match(A: torch.Tensor, Bm: torch.Tensor, flow: torch.Tensor, radius: int, win: int) -> torch.Tensor:
     """Discrete search: per pixel, the flow among ``flow + (dx, dy)``, |dx|,|dy| <= radius,
-    and the zero flow, minimising the window-averaged absolute difference."""
+    and the zero flow, minimising the window-averaged absolute difference.
+
+    The ``(2 radius + 1)^2`` candidates are warped and box-filtered as one batch (issue 13:
+    the trajectories' admissions spend most of their time in this flow; one call each
+    instead of 25 took a 160x120 ``lk_flow`` from 101 to 93 ms), then compared in the
+    candidates' order as before: the same numbers as one candidate at a time
+    (tests/test_interpolation.py)."""
     best_cost = _box((A - Bm).abs().sum(1, keepdim=True), win)
     best = torch.zeros_like(flow)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            cand = flow.clone()
-            cand[:, 0] += dx
-            cand[:, 1] += dy
-            cost = _box((A - warp(Bm, cand)).abs().sum(1, keepdim=True), win)
-            take = cost < best_cost - 1e-7
-            best = torch.where(take, cand, best)
-            best_cost = torch.where(take, cost, best_cost)
+    offsets = [(dx, dy) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)]
+    n, b = len(offsets), flow.shape[0]
+    shift = torch.tensor(offsets, dtype=flow.dtype, device=flow.device).repeat_interleave(b, 0)
+    cands = flow.repeat(n, 1, 1, 1)
+    cands += shift[:, :, None, None]
+    costs = _box((A.repeat(n, 1, 1, 1) - warp(Bm.repeat(n, 1, 1, 1), cands)).abs().sum(1, keepdim=True), win)
+    for k in range(n):
+        cand, cost = cands[k * b:(k + 1) * b], costs[k * b:(k + 1) * b]
+        take = cost < best_cost - 1e-7
+        best = torch.where(take, cand, best)
+        best_cost = torch.where(take, cost, best_cost)
     return best
 
 

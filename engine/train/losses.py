@@ -15,7 +15,7 @@ from pytorch_msssim import ssim
 
 from ..scene.model import TRAJ_MEANS
 from ..scene.rigidity import knn_neighbours, rigidity_losses
-from ..scene.trajectory import inner_residuals
+from ..scene.trajectory import inner_residual_sq
 from .geometry_losses import geometry_loss_terms
 from .presets import TrainConfig
 
@@ -95,10 +95,10 @@ def _traj_reg(ctx: StepContext):
     m = ctx.trainer.model
     if m.trajectory is None or not m.use_deformation:
         return None
-    d = inner_residuals(getattr(m.gaussians, TRAJ_MEANS))
-    if d.numel() == 0:
+    sq = inner_residual_sq(getattr(m.gaussians, TRAJ_MEANS))
+    if sq.numel() == 0:
         return None
-    return (d ** 2).sum(-1).mean() / ctx.trainer.extent ** 2
+    return sq.mean() / ctx.trainer.extent ** 2
 
 
 def _rigidity(ctx: StepContext):

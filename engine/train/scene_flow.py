@@ -25,8 +25,10 @@ from ..cameras import View, project_points
 from ..geometry.depth_priors import stereo_depth_priors
 from ..scene.model import TRAJ_MEANS
 from .interpolation import lk_flow
+from .nearest import nearest_within
 
-__all__ = ["image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden", "carry_trajectories"]
+__all__ = ["image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden", "propagate_to_hidden_dense",
+           "carry_trajectories"]
 
 
 def _grey8(img: np.ndarray) -> np.ndarray:
@@ -125,13 +127,38 @@ def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_
     return out.astype(np.float32), carried
 
 
-@torch.no_grad()
 def propagate_to_hidden(positions: np.ndarray, delta: np.ndarray, decided: np.ndarray, max_dist: float,
                         chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """Give each undecided Gaussian (hidden at ``t_a``: inside or behind a moving object)
     the displacement of its nearest decided one (carried, or a still visible surface) within
     ``max_dist``: what lies under a surface moves with it, instead of staying behind as
-    specks (measured on the novel scene's ball, issue 11). Returns (delta [N, 3], taken [N])."""
+    specks (measured on the novel scene's ball, issue 11). Returns (delta [N, 3], taken [N]).
+    The exact grid search of :func:`engine.train.nearest.nearest_within` (issue 13: the
+    dense ``torch.cdist`` it replaces, :func:`propagate_to_hidden_dense`, cost ~0.2-1.2 s
+    per admitted instant)."""
+    if DENSE_SEARCH:
+        return propagate_to_hidden_dense(positions, delta, decided, max_dist, chunk)
+    pos = np.asarray(positions, np.float32)
+    out = np.asarray(delta, np.float32).copy()
+    taken = np.zeros(len(pos), dtype=bool)
+    src = np.nonzero(decided)[0]
+    dst = np.nonzero(~decided)[0]
+    if len(src) == 0 or len(dst) == 0:
+        return out, taken
+    j, _ = nearest_within(pos[dst], pos[src], max_dist)
+    ok = j >= 0
+    out[dst[ok]] = out[src[j[ok]]]
+    taken[dst[ok]] = True
+    return out, taken
+
+
+DENSE_SEARCH = False  # True: the dense torch.cdist search (bench-step's "nn-dense" variant)
+
+
+@torch.no_grad()
+def propagate_to_hidden_dense(positions: np.ndarray, delta: np.ndarray, decided: np.ndarray, max_dist: float,
+                              chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`propagate_to_hidden` by a dense float32 ``torch.cdist`` (as before issue 13)."""
     pos = torch.as_tensor(np.asarray(positions, np.float32))
     out = np.asarray(delta, np.float32).copy()
     taken = np.zeros(len(pos), dtype=bool)

@@ -1,0 +1,55 @@
+"""numba kernels of the trajectories' residual-square term (issue 13):
+:func:`engine.scene.trajectory.inner_residual_sq` forward and backward in one pass each.
+
+``params`` [N, K, C] float32/float64 contiguous, ``K = 3 (F - 1) + 1``; the residuals of
+segment ``i`` are entries ``3 i + 1`` and ``3 i + 2``. Rounding as torch's
+``(inner_residuals(params) ** 2).sum(-1)`` (squares summed left to right) and its
+autograd backward ``grad * (2 * d)``; tests compare bit for bit.
+"""
+from __future__ import annotations
+
+from numba import njit
+
+from ..numba_cache import install_cache_locator
+
+install_cache_locator(__name__)
+
+
+@njit(cache=True, nogil=True)
+def residual_sq(params, out):
+    """``out[n, i, j] = sum_c params[n, 3 i + 1 + j, c] ** 2`` ([N, F - 1, 2]); returns
+    whether any residual is nonzero (its square may underflow to 0: the values are tested)."""
+    n, segs = out.shape[0], out.shape[1]
+    C = params.shape[2]
+    nonzero = False
+    for r in range(n):
+        for i in range(segs):
+            for j in range(2):
+                x = params[r, 3 * i + 1 + j, 0]
+                nonzero |= x != 0
+                acc = x * x
+                for c in range(1, C):
+                    x = params[r, 3 * i + 1 + j, c]
+                    nonzero |= x != 0
+                    acc = acc + x * x
+                out[r, i, j] = acc
+    return nonzero
+
+
+@njit(cache=True, nogil=True)
+def residual_sq_backward(params, grad, out):
+    """``out`` [N, K, C] (every entry written): ``grad[n, i, j] * (2 * d)`` at the residual
+    entries, zero at the junctions."""
+    n, K, C = params.shape
+    segs = grad.shape[1]
+    for r in range(n):
+        for c in range(C):
+            out[r, K - 1, c] = 0.0
+        for i in range(segs):
+            for c in range(C):
+                out[r, 3 * i, c] = 0.0
+            for j in range(2):
+                gr = grad[r, i, j]
+                for c in range(C):
+                    x = params[r, 3 * i + 1 + j, c]
+                    out[r, 3 * i + 1 + j, c] = gr * (x + x)  # x + x: 2 x exactly, in x's dtype

@@ -1,0 +1,151 @@
+"""Adam in three passes per parameter instead of seven, bit for bit torch's (issue 13).
+
+With per-Gaussian trajectories the Gaussians carry ~190 floats each (133 of them the
+curves' control points, ``engine.scene.trajectory``), and ``torch.optim.Adam``'s CPU
+single-tensor step walks every parameter seven times (``lerp_``, ``mul_``, ``addcmul_``,
+``sqrt``, ``div``, ``add_``, ``addcdiv_``): 15-16 ms of a 80-90 ms RGB deformation step on
+the demo (README, step speed), most of it in ``sqrt``: torch's CPU square root (MKL)
+takes a slow path on zeros, and ~70 % of the curves' moments are zero (columns no render
+has reached yet). :class:`FusedAdam` is ``torch.optim.Adam`` (same constructor, state,
+``state_dict``, so densification's state surgery and checkpoints are unchanged) whose
+``step`` updates the moments in one numba pass, takes torch's ``sqrt`` of the nonzero ones
+(zeros replaced by 1, their root set back to 0), and updates the parameter in a second
+numba pass (:mod:`engine.scene._adam_kernels`), rounding exactly as torch does.
+``torch.optim.Adam(fused=True)`` is faster still but not the same numbers (+-1 ulp in ~5 %
+of the elements per step, measured), so training would no longer reproduce runs made
+before.
+
+Exactness rests on how torch's CPU kernels round (fused multiply-adds in ``lerp_`` and
+``addcmul_``), so :func:`exact` compares one step on random tensors with torch's before
+the fused path is used, once per process; anything it does not cover (CUDA, float64,
+non-contiguous or sparse tensors, amsgrad, weight decay, maximize, tensor learning rates,
+no numba) takes torch's own step.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..numba_cache import LazyKernels
+
+KERNELS = LazyKernels(__package__, "_adam_kernels")
+
+# False: every step is torch's (bench-step's "adam-torch" variant switches it)
+ENABLED = True
+_EXACT: bool | None = None
+
+
+def _supported(p: torch.Tensor) -> bool:
+    g = p.grad
+    return (p.device.type == "cpu" and p.dtype == torch.float32 and p.is_contiguous() and g is not None
+            and not g.is_sparse and g.dtype == torch.float32 and g.is_contiguous() and g.shape == p.shape)
+
+
+def _fused_update(p, grad, m, v, step: float, lr: float, beta1: float, beta2: float, eps: float,
+                  scratch: torch.Tensor) -> None:
+    """One Adam update of ``p`` (in place, with its moments) for the ``step``-th time;
+    the scalars as ``_single_tensor_adam`` computes them, then rounded to float32.
+    ``scratch``: float32, at least ``p.numel()`` long (the square roots)."""
+    k = KERNELS.module
+    f32 = np.float32  # torch rounds a Python scalar to the tensor's float32 the same way (nearest)
+    bias_correction1 = 1 - beta1 ** step
+    bias_correction2 = 1 - beta2 ** step
+    step_size = lr / bias_correction1
+    bias_correction2_sqrt = bias_correction2 ** 0.5
+    pf, gf, mf, vf = (t.detach().view(-1).numpy() for t in (p, grad, m, v))
+    root = scratch[:pf.size]
+    k.moments(gf, mf, vf, f32(1 - beta1), f32(beta2), f32(1 - beta2), root.numpy())
+    torch.sqrt(root, out=root)  # torch's (MKL's) rounding
+    k.update(pf, mf, vf, root.numpy(), f32(bias_correction2_sqrt), f32(eps), f32(-step_size))
+
+
+def exact() -> bool:
+    """True when the fused path gives torch's Adam bit for bit here (checked once: three
+    steps on random tensors of awkward sizes, against ``torch.optim.Adam``)."""
+    global _EXACT
+    if _EXACT is None:
+        _EXACT = False
+        if KERNELS.load() is not None:
+            try:
+                _EXACT = _self_check()
+            except Exception:  # a numba / llvmlite that cannot compile the kernels: torch's path
+                _EXACT = False
+    return _EXACT
+
+
+def _self_check() -> bool:
+    gen = torch.Generator().manual_seed(12345)
+    sizes = [(1,), (7,), (37, 3), (2053, 19, 4)]
+    mk = lambda: [torch.nn.Parameter(torch.randn(s, generator=torch.Generator().manual_seed(i)) *  # noqa: E731
+                                     10.0 ** (i - 3)) for i, s in enumerate(sizes)]
+    ref, fus = mk(), mk()
+    groups = lambda ps: [{"params": [p], "lr": 10.0 ** -(i + 1)} for i, p in enumerate(ps)]  # noqa: E731
+    o_ref = torch.optim.Adam(groups(ref), lr=0.0, eps=1e-15, foreach=False)
+    o_fus = FusedAdam(groups(fus), lr=0.0, eps=1e-15)
+    for _ in range(3):
+        for a, b in zip(ref, fus):
+            gr = torch.randn(a.shape, generator=gen) * torch.rand(a.shape, generator=gen).pow(8) * 10.0
+            gr *= torch.rand(a.shape, generator=gen) < 0.5  # exact zeros, as in untouched columns
+            gr.view(-1)[: gr.numel() // 3] = 0.0  # a block never touched: zero moments
+            a.grad, b.grad = gr.clone(), gr.clone()
+        o_ref.step()
+        o_fus._fused_step()
+    return all(torch.equal(a, b) and torch.equal(o_ref.state[a]["exp_avg"], o_fus.state[b]["exp_avg"])
+               and torch.equal(o_ref.state[a]["exp_avg_sq"], o_fus.state[b]["exp_avg_sq"]) for a, b in zip(ref, fus))
+
+
+class FusedAdam(torch.optim.Adam):
+    """``torch.optim.Adam`` with an exact fused CPU step (module docstring)."""
+
+    def _plain(self) -> bool:
+        for g in self.param_groups:
+            if (g["amsgrad"] or g["weight_decay"] or g["maximize"] or g.get("differentiable")
+                    or g.get("capturable") or g.get("fused") or isinstance(g["lr"], torch.Tensor)
+                    or isinstance(g["betas"][0], torch.Tensor) or isinstance(g["betas"][1], torch.Tensor)):
+                return False
+            if any(p.grad is not None and not _supported(p) for p in g["params"]):
+                return False
+        return True
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        if not (ENABLED and self._plain() and exact()):
+            return super().step(closure)
+        loss = None
+        if closure is not None:
+            with torch.enable_grad():
+                loss = closure()
+        self._fused_step()
+        return loss
+
+    @torch.no_grad()
+    def _fused_step(self) -> None:
+        need = max((p.numel() for g in self.param_groups for p in g["params"] if p.grad is not None), default=0)
+        scratch = getattr(self, "_scratch", None)
+        if scratch is None or scratch.numel() < need:
+            scratch = self._scratch = torch.empty(need, dtype=torch.float32)
+        for g in self.param_groups:
+            beta1, beta2 = g["betas"]
+            for p in g["params"]:
+                if p.grad is None:
+                    continue
+                state = self.state[p]
+                if len(state) == 0:  # as torch.optim.Adam._init_group
+                    state["step"] = torch.tensor(0.0, dtype=torch.float32)
+                    state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                    state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                m, v = state["exp_avg"], state["exp_avg_sq"]
+                if not (m.is_contiguous() and v.is_contiguous() and m.dtype == v.dtype == torch.float32):
+                    raise RuntimeError("FusedAdam: moments must be contiguous float32 like their parameter")
+                state["step"] += 1
+                _fused_update(p, p.grad, m, v, float(state["step"].item()), float(g["lr"]), float(beta1),
+                              float(beta2), float(g["eps"]), scratch)
+
+
+def warmup() -> float:
+    """Compile (first run on a machine) or load the kernels and run the exactness check now."""
+    import time
+
+    t0 = time.perf_counter()
+    exact()
+    return time.perf_counter() - t0
