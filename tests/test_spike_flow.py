@@ -167,9 +167,9 @@ def test_flow_cache_computes_each_pair_once():
 
 
 def test_switch_off_builds_no_term():
-    cfg = get_preset("fast")
-    assert cfg.spike_flow_weight == 0.0
-    stream = types.SimpleNamespace(c2w=np.eye(4))
+    cfg = get_preset("fast", {"spike_flow_weight": 0.0})
+    assert get_preset("fast").spike_flow_weight == 1.0  # on by default (README)
+    stream = types.SimpleNamespace(c2w=np.eye(4), intrinsics=object())
     guid = types.SimpleNamespace(renderer=object(), stream=stream)
     tr = types.SimpleNamespace(cfg=cfg, spike_guidance=guid)
     assert spike_flow_factory(tr) == [] and not hasattr(tr, "spike_flow")

@@ -273,6 +273,8 @@ VARIANTS = {
                     "overrides": {"fine_encoder_every": 4}},
     "fine-frozen": {"doc": "fine_frozen_encoder (encoded once per window)", "hexplane_sampler": "auto",
                     "overrides": {"fine_frozen_encoder": True}},
+    "spike-flow": {"doc": "spike_flow_weight=1: the spike-view optical-flow term on the curves (issue 11)",
+                   "hexplane_sampler": "auto", "overrides": {"spike_flow_weight": 1.0}},
 }
 
 

@@ -29,6 +29,9 @@ admitted RGB instant, so a run holds at most ``2 x steps x intervals`` tiny flow
 spike view is the sensor's resolution). Weight ``spike_flow_weight`` (0: off, the term is
 not built). Needs per-Gaussian trajectories and a spike loss (it rides on the spike
 guidance's between-frame instants); nothing with ``rgb_only`` or without a spike stream.
+On by default (weight 1; README "Spike-view optical flow on the curves": on the ``between``
+scene between RGB frames +0.69 / +0.44 dB over the spike loss alone, seeds 0 / 1, the visible
+cube's image-plane error 31.5 -> 11.8 mm; demo +0.14, fast +0.28, novel -0.02 dB).
 """
 from __future__ import annotations
 
@@ -372,7 +375,8 @@ def spike_flow_factory(trainer) -> list:
     guid = getattr(trainer, "spike_guidance", None)
     if cfg.spike_flow_weight <= 0 or guid is None or guid.renderer is None or cfg.spike_loss_weight <= 0:
         return []
-    if "trajectory" not in cfg.motion or guid.stream is None or guid.stream.c2w is None:
+    stream = guid.stream
+    if "trajectory" not in cfg.motion or stream is None or stream.c2w is None or stream.intrinsics is None:
         return []
     term = SpikeFlowSupervision(trainer, guid)
     trainer.spike_flow = term
