@@ -234,3 +234,33 @@ def test_lift_inverts_project():
 
     uv, z = project(x, vm, K)
     assert torch.allclose(lift(uv, z, vm, K), x, atol=1e-5)
+
+
+def test_surface_is_found_and_reused_for_a_few_steps():
+    """A toy model in front of the fake spike camera: surface() finds Gaussians the render sees;
+    cached_surface() renders again only after SURFACE_EVERY steps or when the count changes,
+    and re-projects the cached Gaussians' pixels every call."""
+    sup, _ = _fake_supervision()
+    m = _traj_model(n=30)
+    renders = []
+    real = sup.surface
+
+    def counting(model, t_ref):
+        renders.append(t_ref)
+        return real(model, t_ref)
+
+    sup.surface = counting
+    idx, uv = sup.cached_surface(m, 0.1, step=100)
+    assert idx.numel() > 0 and uv.shape == (idx.numel(), 2)
+    assert bool(((uv[:, 0] >= 0) & (uv[:, 0] < 80) & (uv[:, 1] >= 0) & (uv[:, 1] < 60)).all())
+    with torch.no_grad():  # move the curves: the cached set is re-projected, not re-rendered
+        getattr(m.gaussians, TRAJ_MEANS)[:, 3] += torch.tensor([0.01, 0.0, 0.0])
+    idx2, uv2 = sup.cached_surface(m, 0.1, step=105)
+    assert len(renders) == 1 and torch.equal(idx, idx2)
+    assert torch.allclose(uv2[:, 0] - uv[:, 0], 80.0 * 0.01 / project(m.gaussians.means.detach()[idx]
+                                                                        + torch.tensor([0.01, 0.0, 0.0]),
+                                                                        VIEWMAT, K)[1], atol=1e-3)
+    sup.cached_surface(m, 0.1, step=100 + sup.SURFACE_EVERY)
+    assert len(renders) == 2
+    sup.cached_surface(m, 0.2, step=111)  # another RGB instant: its own set
+    assert len(renders) == 3

@@ -191,6 +191,7 @@ class SpikeFlowSupervision:
         self._flows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
         self.last: dict = {}  # diagnostics of the last evaluation
         self.fitted: dict[int, dict] = {}  # interval -> counts of its fit (spike_flow_fit)
+        self._surface: dict[float, tuple] = {}  # t_ref -> (step, Gaussian count, indices)
 
     # --- flow cache ----------------------------------------------------------------------
     def frame_of(self, t: float) -> int:
@@ -261,6 +262,24 @@ class SpikeFlowSupervision:
             a = sample_map(alpha[0], uvi, "nearest")[:, 0]
             keep = (a > 0.5) & ((z[idx] - d).abs() <= float(self.cfg.spike_flow_depth_tol) * d)
             return idx[keep], uvi[keep]
+
+    SURFACE_EVERY = 10  # steps a surface set is reused (the render at T costs ~15 ms; it changes slowly)
+
+    def cached_surface(self, model: Model4D, t_ref: float, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`surface`, its Gaussian indices reused for :attr:`SURFACE_EVERY` steps while the
+        Gaussian count is unchanged (densification re-indexes); pixels are re-projected every call."""
+        n = model.gaussians.num_gaussians
+        hit = self._surface.get(t_ref)
+        if hit is None or hit[1] != n or step - hit[0] >= self.SURFACE_EVERY or step < hit[0]:
+            idx, uv = self.surface(model, t_ref)
+            self._surface[t_ref] = (step, n, idx)
+            return idx, uv
+        idx = hit[2]
+        with torch.no_grad():
+            g = model.gaussians
+            x = g.means[idx] + traj.evaluate(getattr(g, TRAJ_MEANS)[idx], model.trajectory["knots"], t_ref)
+            uv, _ = project(x, self.viewmat, self.K)
+        return idx, uv
 
     @torch.no_grad()
     def fit_interval(self, model: Model4D, k: int, extent: float) -> dict:
@@ -346,7 +365,7 @@ class SpikeFlowSupervision:
         k = max(i for i, v in enumerate(self.times) if v <= tq)
         if self.cfg.spike_flow_fit and k not in self.fitted and self.times[k + 1] <= admitted + 1e-9:
             self.fitted[k] = {}  # fitted after this step's optimiser step (after_step), not under autograd
-        idx, uv_ref = self.surface(model, t_ref)
+        idx, uv_ref = self.cached_surface(model, t_ref, ctx.step)
         flow, valid = self.flow(t_ref, tq)
         if idx.numel() == 0:
             return None
