@@ -179,8 +179,8 @@ class TrainConfig:
     # spike-view optical flow (issue 11, engine.train.spike_flow): the visible Gaussians' projected
     # displacement at the spike camera from an RGB instant to a between instant follows the flow
     # between grey images reconstructed from the spikes (trajectories only)
-    # on: 1000 fast steps, eval cameras between RGB frames vs the spike loss alone, between +0.69 / +0.44
-    # dB (seeds 0 / 1; moving pixels +1.39 / +1.26), demo +0.14, fast +0.28, novel -0.02 (README)
+    # on: 1000 fast steps, eval cameras between RGB frames vs the spike loss alone (seeds 0 / 1): between
+    # +0.69 / +0.44 dB (moving pixels +1.39 / +1.26), demo +0.14 / +0.18, fast +0.28 / +0.14, novel -0.02 / +0.56
     spike_flow_weight: float = 1.0  # 0: off (the term is not built)
     spike_flow_window: int = 128  # TFP window (spike frames) of the grey images (EPE vs window: README)
     spike_flow_steps: int = 15  # between instants per RGB interval with a cached flow

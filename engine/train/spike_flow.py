@@ -31,7 +31,7 @@ not built). Needs per-Gaussian trajectories and a spike loss (it rides on the sp
 guidance's between-frame instants); nothing with ``rgb_only`` or without a spike stream.
 On by default (weight 1; README "Spike-view optical flow on the curves": on the ``between``
 scene between RGB frames +0.69 / +0.44 dB over the spike loss alone, seeds 0 / 1, the visible
-cube's image-plane error 31.5 -> 11.8 mm; demo +0.14, fast +0.28, novel -0.02 dB).
+cube's image-plane error 31.5 -> 11.8 mm; demo +0.14 / +0.18, fast +0.28 / +0.14, novel -0.02 / +0.56 dB).
 """
 from __future__ import annotations
 
