@@ -289,6 +289,9 @@ VARIANTS = {
                            "main before this work", "hexplane_sampler": "auto",
                     "patches": {(trajectory, "EVALUATOR"): "torch", (fused_adam, "ENABLED"): False,
                                 (scene_flow, "DENSE_SEARCH"): True}},
+    "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
+                              "(issue 11; on by default)", "hexplane_sampler": "auto",
+                       "overrides": {"spike_flow_weight": 0.0}},
 }
 
 

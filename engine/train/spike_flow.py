@@ -1,0 +1,405 @@
+"""Spike-view optical-flow supervision of the in-between motion (issue 11, Build 2).
+
+The spike loss (Eq. 17) compares rendered and captured spike counts pixel by pixel. Its
+basin is narrow: a part that moved several spike pixels between two RGB instants gives
+gradients that do not point along its motion (``between`` scene: the visible cube
+Gaussians' image-plane error 30.7 mm RGB-only -> 31.6 mm with the spike loss, the 15 Hz
+vibration's own mean displacement being 31 mm; ``scripts/trajectory_error.py --visible``).
+
+This term turns the spike stream's 2D evidence into a displacement target instead. Grey
+images are reconstructed from the spikes (TFP over ``spike_flow_window`` frames with the
+sensor response inverted, :func:`engine.train.baselines.spike_to_gray`) at an RGB instant
+``T`` and at a between-frame instant ``t``; OpenCV's DIS optical flow between them, kept
+where the forward and backward flows agree (occlusions, unreliable texture out), says where
+the surface seen at each spike pixel at ``T`` has gone at ``t``. For the Gaussians that are
+the visible surface at the spike view at ``T`` (their camera depth within
+``spike_flow_depth_tol`` of the rendered depth at their pixel), the projected displacement
+``pi(x(t)) - pi(x(T))`` through the spike camera must match the flow at ``pi(x(T))``::
+
+    L = mean_i smoothL1_beta( pi(x_i(t)) - [pi(x_i(T)) + flow_{T->t}(pi(x_i(T)))] )   (spike px)
+
+``x(T)`` is a target (no gradient); ``x(t)`` keeps a gradient only into the curves' inner
+control points (the junctions belong to the RGB frames), so the term bends the in-between
+motion and leaves what both cameras saw alone. ``d pi / d x`` is perpendicular to the ray:
+the along-ray component stays with the curves' smoothness (``traj_inner_weight``).
+
+Flows are computed once per (reference instant, between instant) pair: the between instant
+is rounded to ``spike_flow_steps`` points per RGB interval and the reference is the nearer
+admitted RGB instant, so a run holds at most ``2 x steps x intervals`` tiny flow maps (the
+spike view is the sensor's resolution). Weight ``spike_flow_weight`` (0: off, the term is
+not built). Needs per-Gaussian trajectories and a spike loss (it rides on the spike
+guidance's between-frame instants); nothing with ``rgb_only`` or without a spike stream.
+On by default (weight 1; README "Spike-view optical flow on the curves": on the ``between``
+scene between RGB frames +0.69 / +0.44 dB over the spike loss alone, seeds 0 / 1, the visible
+cube's image-plane error 31.5 -> 11.8 mm; demo +0.14 / +0.18, fast +0.28 / +0.14, novel -0.02 / +0.56 dB).
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..scene import trajectory as traj
+from ..scene.model import TRAJ_MEANS, Model4D
+from .baselines import spike_to_gray
+from .losses import LossTerm
+
+__all__ = ["gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map", "project", "lift",
+           "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions",
+           "SpikeFlowSupervision", "spike_flow_factory"]
+
+
+# ------------------------------------------------------------------------------ functional
+def gray_to_u8(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two linear-luminance images [h, w] -> uint8 with one shared scale (the 99.5th
+    percentile of both) and a 1/2.2 gamma, so dark texture keeps contrast for the flow."""
+    hi = float(np.percentile(np.concatenate([a.ravel(), b.ravel()]), 99.5)) or 1.0
+    enc = lambda x: (np.clip(x / hi, 0.0, 1.0) ** (1.0 / 2.2) * 255.0 + 0.5).astype(np.uint8)  # noqa: E731
+    return enc(a), enc(b)
+
+
+def dense_flow(a_u8: np.ndarray, b_u8: np.ndarray, upsample: int = 2) -> np.ndarray:
+    """DIS optical flow [h, w, 2] (x, y pixels) with ``a(p) ~ b(p + flow(p))`` (OpenCV's
+    ``calc(prev=a, next=b)`` convention). Spike frames are small (e.g. 80 x 60): the images
+    are upsampled ``upsample`` x so DIS's patches and pyramid have room, and the flow is
+    brought back to the input's pixels."""
+    h, w = a_u8.shape
+    s = max(1, int(upsample))
+    if s > 1:
+        a_u8 = cv2.resize(a_u8, (w * s, h * s), interpolation=cv2.INTER_CUBIC)
+        b_u8 = cv2.resize(b_u8, (w * s, h * s), interpolation=cv2.INTER_CUBIC)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setFinestScale(0)
+    flow = dis.calc(np.ascontiguousarray(a_u8), np.ascontiguousarray(b_u8), None)
+    if s > 1:
+        flow = cv2.resize(flow, (w, h), interpolation=cv2.INTER_AREA) / float(s)
+    return flow.astype(np.float32)
+
+
+def forward_backward_valid(fw: np.ndarray, bw: np.ndarray, tol_px: float = 0.5, tol_rel: float = 0.1) -> np.ndarray:
+    """bool [h, w]: pixels whose forward flow lands inside the image and comes back with the
+    backward flow: ``|fw(p) + bw(p + fw(p))| <= tol_px + tol_rel (|fw| + |bw(p + fw)|)``."""
+    h, w = fw.shape[:2]
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    mx, my = gx + fw[..., 0], gy + fw[..., 1]
+    back = cv2.remap(bw, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    err = np.linalg.norm(fw + back, axis=-1)
+    mag = np.linalg.norm(fw, axis=-1) + np.linalg.norm(back, axis=-1)
+    inside = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
+    return inside & (err <= tol_px + tol_rel * mag)
+
+
+def flow_pair(gray_a: np.ndarray, gray_b: np.ndarray, *, upsample: int = 2, tol_px: float = 0.5
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(flow a -> b [h, w, 2], valid bool [h, w]) between two linear grey images [h, w]."""
+    a8, b8 = gray_to_u8(gray_a, gray_b)
+    fw = dense_flow(a8, b8, upsample)
+    bw = dense_flow(b8, a8, upsample)
+    return fw, forward_backward_valid(fw, bw, tol_px)
+
+
+def sample_map(img: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    """Values [M, C] of ``img`` [h, w, C] at continuous pixel coordinates ``uv`` [M, 2]
+    (corner of the image at (0, 0), pixel (i, j)'s centre at (j + 0.5, i + 0.5): the
+    convention of :func:`engine.cameras.project_points`); borders clamp."""
+    h, w = img.shape[:2]
+    grid = torch.stack([uv[:, 0] / w * 2.0 - 1.0, uv[:, 1] / h * 2.0 - 1.0], -1).reshape(1, 1, -1, 2)
+    src = img.permute(2, 0, 1)[None].to(grid.dtype)
+    out = F.grid_sample(src, grid, mode=mode, padding_mode="border", align_corners=False)
+    return out[0, :, 0].T
+
+
+def project(x: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection of world points ``x`` [N, 3] -> (uv [N, 2], z [N]); ``viewmat``
+    [4, 4] world-to-camera, ``K`` [3, 3] (as :func:`engine.cameras.project_points`)."""
+    cam = x @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    zs = z.clamp_min(1e-6)
+    uv = torch.stack([K[0, 0] * cam[:, 0] / zs + K[0, 2], K[1, 1] * cam[:, 1] / zs + K[1, 2]], -1)
+    return uv, z
+
+
+def projected_flow_loss(uv_t: torch.Tensor, target: torch.Tensor, beta: float = 1.0) -> torch.Tensor:
+    """Mean smooth-L1 (knee ``beta`` px) of the 2D error ``|uv_t - target|`` [M] in pixels
+    (``target`` detached)."""
+    err = torch.linalg.vector_norm(uv_t - target.detach(), dim=-1)
+    return F.smooth_l1_loss(err, torch.zeros_like(err), beta=float(beta))
+
+
+def segment_basis(u: torch.Tensor) -> torch.Tensor:
+    """[J, 2]: the Bezier weights ``3 (1-u)^2 u`` and ``3 (1-u) u^2`` of a segment's two inner
+    control points at local parameters ``u`` [J] (a curve moves by ``a D0 + b D1`` when its
+    residuals move by ``D0, D1``; engine.scene.trajectory)."""
+    v = 1.0 - u
+    return torch.stack([3.0 * v * v * u, 3.0 * v * u * u], -1)
+
+
+def fit_inner_residuals(current: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor, u: torch.Tensor,
+                        ridge: float = 1e-3) -> torch.Tensor:
+    """Least-squares change ``dD`` [M, 2, 3] of one segment's inner residuals so that the
+    curves pass through ``targets``: ``current[j] + a(u_j) dD0 + b(u_j) dD1 ~ targets[j]``
+    weighted by ``weights`` [J, M] (0 = no observation). ``current``, ``targets`` [J, M, 3];
+    ``ridge`` (x the summed weight) keeps poorly observed curves near where they are."""
+    B = segment_basis(u.to(current))  # [J, 2]
+    w = weights.to(current)
+    AtA = torch.einsum("jm,ja,jb->mab", w, B, B)
+    AtA = AtA + ridge * w.sum(0).clamp_min(1e-6)[:, None, None] * torch.eye(2, dtype=current.dtype,
+                                                                             device=current.device)
+    Atr = torch.einsum("jm,ja,jmc->mac", w, B, targets - current)
+    return torch.linalg.solve(AtA, Atr)
+
+
+def lift(uv: torch.Tensor, z: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """World points [N, 3] at pixels ``uv`` [N, 2] and camera depth ``z`` [N] (inverse of :func:`project`)."""
+    cam = torch.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], -1)
+    return (cam - viewmat[:3, 3]) @ viewmat[:3, :3]
+
+
+def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:
+    """Positions [M, 3] of Gaussians ``idx`` at ``t`` whose gradient reaches only the curves'
+    inner control points (canonical means and junctions detached). Static rows are not
+    passed here by the caller."""
+    g = model.gaussians
+    params = getattr(g, TRAJ_MEANS)[idx]
+    inner = torch.ones(params.shape[1], dtype=torch.bool, device=params.device)
+    inner[0::3] = False
+    params = torch.where(inner[None, :, None], params, params.detach())
+    return g.means.detach()[idx] + traj.evaluate(params, model.trajectory["knots"], t)
+
+
+# ------------------------------------------------------------------------------ trainer term
+class SpikeFlowSupervision:
+    """Per-run state of the term: flow cache, the spike camera and the RGB instants."""
+
+    def __init__(self, trainer, guidance):
+        self.trainer = trainer
+        self.guidance = guidance
+        self.cfg = trainer.cfg
+        stream = guidance.stream
+        self.stream = stream
+        view = stream.view(0.0)
+        dev = trainer.device
+        self.view = view
+        self.viewmat = torch.as_tensor(view.viewmat, dtype=torch.float32, device=dev)
+        self.K = torch.as_tensor(view.K, dtype=torch.float32, device=dev)
+        self.vt = {"viewmat": self.viewmat[None], "K": self.K[None], "width": int(stream.width),
+                   "height": int(stream.height), "campos": torch.as_tensor(view.center, dtype=torch.float32,
+                                                                           device=dev), "time": 0.0}
+        self.times = list(trainer.frame_times)
+        self._gray: dict[int, np.ndarray] = {}
+        self._flows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+        self.last: dict = {}  # diagnostics of the last evaluation
+        self.fitted: dict[int, dict] = {}  # interval -> counts of its fit (spike_flow_fit)
+        self._surface: dict[float, tuple] = {}  # t_ref -> (step, Gaussian count, indices)
+
+    # --- flow cache ----------------------------------------------------------------------
+    def frame_of(self, t: float) -> int:
+        """Spike frame index nearest to ``t`` (the cache's key for an instant)."""
+        return int(round((float(t) - self.stream.t0) * self.stream.rate_hz))
+
+    def gray(self, t: float) -> np.ndarray:
+        """Linear grey image [h, w] reconstructed from the spikes around ``t`` (cached)."""
+        k = self.frame_of(t)
+        if k not in self._gray:
+            tk = self.stream.t0 + k / self.stream.rate_hz
+            self._gray[k] = spike_to_gray(self.stream, tk, self.guidance.sensor, method="tfp",
+                                          window=int(self.cfg.spike_flow_window))
+        return self._gray[k]
+
+    def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """(flow ref -> t [h, w, 2], valid float [h, w, 1]) as tensors on the trainer's device (cached)."""
+        key = (self.frame_of(t_ref), self.frame_of(t))
+        hit = self._flows.get(key)
+        if hit is None:
+            fl, ok = self.estimate(t_ref, t)
+            dev = self.trainer.device
+            hit = (torch.as_tensor(fl, dtype=torch.float32, device=dev),
+                   torch.as_tensor(ok, dtype=torch.float32, device=dev)[..., None])
+            self._flows[key] = hit
+        return hit
+
+    def estimate(self, t_ref: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(flow [h, w, 2], valid bool [h, w]) from the spike stream (the oracle script
+        ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion)."""
+        return flow_pair(self.gray(t_ref), self.gray(t), tol_px=float(self.cfg.spike_flow_fb_tol))
+
+    # --- instants ------------------------------------------------------------------------
+    def instants(self, t: float, admitted: float) -> tuple[float, float] | None:
+        """(reference RGB instant, quantised between instant) for a between instant ``t``,
+        or None when no bracketing RGB instant is admitted yet."""
+        ts = self.times
+        if not ts or t <= ts[0] or t >= ts[-1]:
+            return None
+        k = max(i for i, v in enumerate(ts) if v <= t)
+        a, b = ts[k], ts[k + 1]
+        n = max(1, int(self.cfg.spike_flow_steps))
+        q = min(n, max(1, int(round((t - a) / (b - a) * (n + 1)))))
+        tq = a + (b - a) * q / (n + 1)
+        cands = [v for v in (a, b) if v <= admitted + 1e-9]
+        if not cands:
+            return None
+        return min(cands, key=lambda v: abs(v - tq)), tq
+
+    def surface(self, model: Model4D, t_ref: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """(indices [M] of the Gaussians that are the visible surface at the spike view at
+        ``t_ref``, their pixels uv [M, 2]): in front, inside, not static, camera depth within
+        ``spike_flow_depth_tol`` (relative) of the rendered expected depth where alpha > 0.5."""
+        with torch.no_grad():
+            _, alpha, meta, attrs = model.render(self.vt, t_ref, render_depth=True)
+            uv, z = project(attrs["means"], self.viewmat, self.K)
+            w, h = self.vt["width"], self.vt["height"]
+            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            ok = inside & (meta["radii"][0] > 0)
+            static = model.effective_static_mask()
+            if static is not None:
+                ok &= ~static
+            idx = ok.nonzero(as_tuple=True)[0]
+            if idx.numel() == 0:
+                return idx, uv[:0]
+            uvi = uv[idx]
+            d = sample_map(meta["depths"][0], uvi, "nearest")[:, 0]
+            a = sample_map(alpha[0], uvi, "nearest")[:, 0]
+            keep = (a > 0.5) & ((z[idx] - d).abs() <= float(self.cfg.spike_flow_depth_tol) * d)
+            return idx[keep], uvi[keep]
+
+    SURFACE_EVERY = 10  # steps a surface set is reused (the render at T costs ~15 ms; it changes slowly)
+
+    def cached_surface(self, model: Model4D, t_ref: float, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`surface`, its Gaussian indices reused for :attr:`SURFACE_EVERY` steps while the
+        Gaussian count is unchanged (densification re-indexes); pixels are re-projected every call."""
+        n = model.gaussians.num_gaussians
+        hit = self._surface.get(t_ref)
+        if hit is None or hit[1] != n or step - hit[0] >= self.SURFACE_EVERY or step < hit[0]:
+            idx, uv = self.surface(model, t_ref)
+            self._surface[t_ref] = (step, n, idx)
+            return idx, uv
+        idx = hit[2]
+        with torch.no_grad():
+            g = model.gaussians
+            x = g.means[idx] + traj.evaluate(getattr(g, TRAJ_MEANS)[idx], model.trajectory["knots"], t_ref)
+            uv, _ = project(x, self.viewmat, self.K)
+        return idx, uv
+
+    @torch.no_grad()
+    def fit_interval(self, model: Model4D, k: int, extent: float) -> dict:
+        """Bend segment ``k``'s inner control points to the flow (``spike_flow_fit``): the
+        Gaussians that are the visible surface at ``T_k`` get, by least squares over the
+        segment's grid instants, the residual change that puts their projections where the
+        flow from ``T_k`` says (depth kept from the current curve: image-plane motion only);
+        Gaussians within ``traj_carry_hidden`` x extent of them that the spike view does not
+        see (inside or behind the surface) take their nearest one's change. Returns counts."""
+        from .scene_flow import propagate_to_hidden
+
+        a, b = self.times[k], self.times[k + 1]
+        n = max(1, int(self.cfg.spike_flow_steps))
+        us = torch.arange(1, n + 1, dtype=torch.float32) / (n + 1)
+        idx, uv_ref = self.surface(model, a)
+        if idx.numel() == 0:
+            return {"interval": k, "fitted": 0}
+        g = model.gaussians
+        params = getattr(g, TRAJ_MEANS)
+        knots = model.trajectory["knots"]
+        seg, _ = traj.segment_of(knots, 0.5 * (a + b))
+        cur, tgt, wts, mags = [], [], [], []
+        for u in us.tolist():
+            t = a + (b - a) * u
+            flow, valid = self.flow(a, t)
+            x = g.means[idx] + traj.evaluate(params[idx], knots, t)
+            _, z = project(x, self.viewmat, self.K)
+            f = sample_map(flow, uv_ref)
+            cur.append(x)
+            tgt.append(lift(uv_ref + f, z, self.viewmat, self.K))
+            wts.append(sample_map(valid, uv_ref, "nearest")[:, 0])
+            mags.append(f.norm(dim=-1))
+        w = torch.stack(wts)
+        dD = fit_inner_residuals(torch.stack(cur), torch.stack(tgt), w, us.to(params.device))
+        enough = w.sum(0) >= 0.5 * n  # observed at half the instants at least
+        # the flow's noise on a still surface (0.3 px at the default window, README) is not motion
+        still = torch.stack(mags).median(0).values < float(self.cfg.spike_flow_min_px)
+        dD[still] = 0.0
+        full = torch.zeros(params.shape[0], 2, 3, dtype=params.dtype, device=params.device)
+        full[idx[enough]] = dD[enough].to(params.dtype)
+        decided = torch.zeros(params.shape[0], dtype=torch.bool)
+        decided[idx[enough].cpu()] = True
+        hidden = 0
+        if self.cfg.traj_carry_hidden > 0 and bool(decided.any()):
+            pos = (g.means + traj.evaluate(params, knots, a)).cpu().numpy()
+            outs = []
+            for j in range(2):
+                d, taken = propagate_to_hidden(pos, full[:, j].cpu().numpy(), decided.numpy(),
+                                               float(self.cfg.traj_carry_hidden) * extent)
+                outs.append(torch.as_tensor(d, device=params.device, dtype=params.dtype))
+            static = model.effective_static_mask()
+            keep = torch.ones(params.shape[0], dtype=torch.bool, device=params.device)
+            if static is not None:
+                keep &= ~static
+            full = torch.where(keep[:, None, None], torch.stack(outs, 1), full)
+            hidden = int(taken.sum())
+        params.data[:, 3 * seg + 1] += full[:, 0]
+        params.data[:, 3 * seg + 2] += full[:, 1]
+        return {"interval": k, "fitted": int(enough.sum()), "still": int((enough & still).sum()), "hidden": hidden,
+                "mean_change_mm": float(dD[enough].norm(dim=-1).mean() * 1000) if bool(enough.any()) else 0.0}
+
+    def after_step(self, tr, step, item, meta) -> None:
+        """Post-step hook: the interval fits asked for during this step."""
+        for k, info in list(self.fitted.items()):
+            if not info and tr.model is not None and tr.model.trajectory is not None:
+                self.fitted[k] = self.fit_interval(tr.model, k, float(tr.extent))
+
+    def __call__(self, ctx):
+        guid = self.guidance
+        b = guid.between(ctx)
+        if b is None or b["camera"] != guid.colocated:
+            return None
+        tr = ctx.trainer
+        model = tr.model
+        if model is None or not model.use_deformation or model.trajectory is None:
+            return None
+        window = getattr(tr, "time_window", None)
+        admitted = window(ctx.step) if callable(window) else self.times[-1]
+        pair = self.instants(float(b["instant"].time), admitted)
+        if pair is None:
+            return None
+        t_ref, tq = pair
+        k = max(i for i, v in enumerate(self.times) if v <= tq)
+        if self.cfg.spike_flow_fit and k not in self.fitted and self.times[k + 1] <= admitted + 1e-9:
+            self.fitted[k] = {}  # fitted after this step's optimiser step (after_step), not under autograd
+        idx, uv_ref = self.cached_surface(model, t_ref, ctx.step)
+        flow, valid = self.flow(t_ref, tq)
+        if idx.numel() == 0:
+            return None
+        ok = sample_map(valid, uv_ref, "nearest")[:, 0] > 0.5
+        idx, uv_ref = idx[ok], uv_ref[ok]
+        cap = int(self.cfg.spike_flow_max_gaussians)
+        if cap > 0 and idx.numel() > cap:  # a random subset bounds the cost per step
+            gen = torch.Generator(device="cpu").manual_seed(tr.seed * 7919 + ctx.step)
+            pick = torch.randperm(idx.numel(), generator=gen)[:cap].to(idx.device)
+            idx, uv_ref = idx[pick], uv_ref[pick]
+        if idx.numel() == 0:
+            return None
+        target = uv_ref + sample_map(flow, uv_ref)
+        uv_t, _ = project(inner_only_positions(model, tq, idx), self.viewmat, self.K)
+        loss = projected_flow_loss(uv_t, target, float(self.cfg.spike_flow_beta))
+        with torch.no_grad():
+            res = float(torch.linalg.vector_norm(uv_t - target, dim=-1).mean())
+        self.last = {"gaussians": int(idx.numel()), "residual_px": res, "t_ref": t_ref, "t": tq}
+        return loss
+
+
+def spike_flow_factory(trainer) -> list:
+    """The flow term for a (non rgb_only) run with ``spike_flow_weight > 0``, per-Gaussian
+    trajectories and a spike loss (whose between-frame instants it uses); nothing otherwise."""
+    cfg = trainer.cfg
+    guid = getattr(trainer, "spike_guidance", None)
+    if cfg.spike_flow_weight <= 0 or guid is None or guid.renderer is None or cfg.spike_loss_weight <= 0:
+        return []
+    stream = guid.stream
+    if "trajectory" not in cfg.motion or stream is None or stream.c2w is None or stream.intrinsics is None:
+        return []
+    term = SpikeFlowSupervision(trainer, guid)
+    trainer.spike_flow = term
+    hooks = getattr(trainer, "post_step_hooks", None)
+    if hooks is not None and cfg.spike_flow_fit:
+        hooks.append(term.after_step)
+    return [LossTerm("spike_flow", float(cfg.spike_flow_weight), term, stages=("deform",))]

@@ -1,0 +1,266 @@
+"""Spike-view optical-flow supervision (issue 11, engine.train.spike_flow): the flow's sign and
+pixel convention, the loss bending a curve toward a known displacement, the switch, the cache."""
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from engine.scene.gaussians import GaussianModel
+from engine.scene.model import TRAJ_MEANS, Model4D
+from engine.train.presets import get_preset
+from engine.train.spike_flow import (
+    SpikeFlowSupervision,
+    flow_pair,
+    inner_only_positions,
+    project,
+    projected_flow_loss,
+    sample_map,
+    spike_flow_factory,
+)
+
+
+def _texture(h=60, w=80, seed=0):
+    """A smooth random texture (blobs a few pixels wide), linear luminance in [0.05, 1]."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(size=(h + 40, w + 40)).astype(np.float32), (0, 0), 1.5)
+    img = (img - img.min()) / (img.max() - img.min())
+    return 0.05 + 0.95 * img
+
+
+def test_flow_sign_and_convention_on_a_translated_image():
+    """b(p) = a(p - d): the flow a -> b is +d (x, y), so a(p) = b(p + flow(p))."""
+    big = _texture(100, 120)
+    dx, dy = 2, 1
+    a = big[20:80, 20:100]
+    b = big[20 - dy:80 - dy, 20 - dx:100 - dx]  # content moved right by dx, down by dy
+    flow, valid = flow_pair(a, b)
+    assert flow.shape == (60, 80, 2) and valid.shape == (60, 80)
+    inner = valid[8:-8, 8:-8]
+    assert inner.mean() > 0.8  # forward and backward agree on a clean translation
+    med = np.median(flow[8:-8, 8:-8][inner], axis=0)
+    assert abs(med[0] - dx) < 0.25 and abs(med[1] - dy) < 0.25
+    # and the backward direction is the opposite
+    back, _ = flow_pair(b, a)
+    assert np.allclose(np.median(back[8:-8, 8:-8].reshape(-1, 2), axis=0), [-dx, -dy], atol=0.25)
+
+
+def test_forward_backward_check_drops_disagreeing_pixels():
+    a = _texture()
+    b = _texture(seed=1)  # unrelated content: no consistent motion
+    _, valid = flow_pair(a, a)
+    assert valid.mean() > 0.95  # identical images: zero flow both ways
+    _, valid = flow_pair(a, b)
+    assert valid.mean() < 0.8
+
+
+def test_sample_map_uses_pixel_centres():
+    img = torch.arange(12, dtype=torch.float32).reshape(3, 4, 1)
+    uv = torch.tensor([[0.5, 0.5], [3.5, 2.5], [1.5, 1.5], [2.0, 1.5]])
+    out = sample_map(img, uv)[:, 0]
+    assert torch.allclose(out, torch.tensor([0.0, 11.0, 5.0, 5.5]), atol=1e-5)
+
+
+KNOTS = [0.0, 0.1, 0.2, 0.3]
+VIEWMAT = torch.eye(4)
+K = torch.tensor([[80.0, 0.0, 40.0], [0.0, 80.0, 30.0], [0.0, 0.0, 1.0]])
+
+
+def _traj_model(n=8, seed=0):
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(size=(n, 3)) * 0.1 + np.array([0.0, 0.0, 2.0])
+    g = GaussianModel(xyz, rng.uniform(size=(n, 3)))
+    g.setup_optimizer(get_preset("fast"), 1.0)
+    m = Model4D(g)
+    m.add_trajectories(KNOTS, 1e-3, 1e-3)
+    m.use_deformation = True
+    return m
+
+
+def test_loss_bends_the_curve_toward_a_known_displacement():
+    """Gaussians at rest at every RGB instant; the 'flow' says they moved +3 px in x at t=0.15
+    (reference 0.1). Descending the loss on the inner control points alone moves their
+    projection there, and leaves the junctions (what the RGB frames saw) untouched."""
+    m = _traj_model()
+    idx = torch.arange(m.gaussians.num_gaussians)
+    params = getattr(m.gaussians, TRAJ_MEANS)
+    t_ref, t = 0.1, 0.15
+    with torch.no_grad():
+        uv_ref, _ = project(inner_only_positions(m, t_ref, idx), VIEWMAT, K)
+    target = uv_ref + torch.tensor([3.0, 0.0])
+    opt = torch.optim.Adam([params], lr=2e-3)
+    junctions0 = params.detach()[:, 0::3].clone()
+    first = None
+    for _ in range(300):
+        opt.zero_grad()
+        uv_t, _ = project(inner_only_positions(m, t, idx), VIEWMAT, K)
+        loss = projected_flow_loss(uv_t, target, beta=1.0)
+        first = float(loss.detach()) if first is None else first
+        loss.backward()
+        assert torch.all(params.grad[:, 0::3] == 0)  # junctions get no gradient
+        opt.step()
+    with torch.no_grad():
+        uv_t, _ = project(inner_only_positions(m, t, idx), VIEWMAT, K)
+    assert first > 1.0
+    err = (uv_t - target).norm(dim=1)
+    assert float(err.max()) < 0.3, err
+    assert torch.equal(params.detach()[:, 0::3], junctions0)
+    # the curve passes through its (unchanged) junctions at the RGB instants
+    with torch.no_grad():
+        assert torch.allclose(project(inner_only_positions(m, t_ref, idx), VIEWMAT, K)[0], uv_ref, atol=1e-4)
+
+
+def test_loss_gradient_is_in_the_image_plane():
+    """The projection's gradient has no component along the viewing ray."""
+    m = _traj_model()
+    idx = torch.arange(m.gaussians.num_gaussians)
+    params = getattr(m.gaussians, TRAJ_MEANS)
+    uv_t, _ = project(inner_only_positions(m, 0.15, idx), VIEWMAT, K)
+    projected_flow_loss(uv_t, uv_t.detach() + torch.tensor([2.0, -1.0])).backward()
+    x = m.gaussians.means.detach()
+    ray = x / x.norm(dim=1, keepdim=True)  # camera at the origin (identity viewmat)
+    g = params.grad[:, 4]
+    assert float((g * ray).sum(1).abs().max()) < 1e-6 * float(g.norm(dim=1).max()) + 1e-9
+
+
+def _fake_supervision(steps=3):
+    cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_steps": steps})
+    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
+        viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
+    guid = types.SimpleNamespace(stream=stream, sensor=None)
+    tr = types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu"))
+    sup = SpikeFlowSupervision(tr, guid)
+    calls = []
+
+    def estimate(t_ref, t):
+        calls.append((t_ref, t))
+        return np.full((60, 80, 2), t - t_ref, np.float32), np.ones((60, 80), bool)
+
+    sup.estimate = estimate
+    return sup, calls
+
+
+def test_instants_quantise_and_use_the_nearer_admitted_rgb_instant():
+    sup, _ = _fake_supervision(steps=3)  # grid 0.125, 0.15, 0.175 inside [0.1, 0.2]
+    ref, tq = sup.instants(0.1801, admitted=0.3)
+    assert ref == 0.2 and abs(tq - 0.175) < 1e-12
+    ref, tq = sup.instants(0.1801, admitted=0.19)  # 0.2 not admitted yet: the left end
+    assert ref == 0.1 and abs(tq - 0.175) < 1e-12
+    ref, tq = sup.instants(0.101, admitted=0.3)  # never the RGB instant itself
+    assert ref == 0.1 and abs(tq - 0.125) < 1e-12
+    assert sup.instants(0.05, admitted=0.0)[0] == 0.0
+    assert sup.instants(0.35, admitted=0.3) is None
+
+
+def test_flow_cache_computes_each_pair_once():
+    sup, calls = _fake_supervision()
+    f1, v1 = sup.flow(0.1, 0.125)
+    f2, _ = sup.flow(0.1, 0.125 + 1e-6)  # the same spike frame
+    assert len(calls) == 1 and f1 is f2
+    assert f1.shape == (60, 80, 2) and v1.shape == (60, 80, 1)
+    sup.flow(0.2, 0.125)
+    assert len(calls) == 2
+
+
+def test_switch_off_builds_no_term():
+    cfg = get_preset("fast", {"spike_flow_weight": 0.0})
+    assert get_preset("fast").spike_flow_weight == 1.0  # on by default (README)
+    stream = types.SimpleNamespace(c2w=np.eye(4), intrinsics=object())
+    guid = types.SimpleNamespace(renderer=object(), stream=stream)
+    tr = types.SimpleNamespace(cfg=cfg, spike_guidance=guid)
+    assert spike_flow_factory(tr) == [] and not hasattr(tr, "spike_flow")
+    tr.cfg = get_preset("fast", {"spike_flow_weight": 1.0, "motion": "hexplane"})
+    assert spike_flow_factory(tr) == []  # curves only
+    tr.cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_loss_weight": 0.0})
+    assert spike_flow_factory(tr) == []  # rides on the spike loss's instants
+    tr.spike_guidance = None
+    tr.cfg = get_preset("fast", {"spike_flow_weight": 1.0})
+    assert spike_flow_factory(tr) == []  # rgb_only / no spike stream: no guidance
+
+
+_TINY = {"iterations": 8, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
+         "densify_from": 2.0, "densify_until": 2.0, "between_colocated_p": 1.0, "time_curriculum": 0.0,
+         "spike_skip_static": False, "traj_carry": "velocity", "spike_flow_weight": 1.0}
+
+
+@pytest.mark.slow
+def test_trainer_steps_with_the_flow_term(demo_capture):
+    """Inside real guided steps on the demo capture: finite values, surface Gaussians found,
+    and only the curves' inner control points get the term's gradient."""
+    from engine.io.capture import load_capture
+    from engine.train.trainer import Trainer
+
+    tr = Trainer(load_capture(demo_capture), get_preset("fast", _TINY), device="cpu")
+    assert "spike_flow" in {t.name for t in tr.loss_terms}
+    tr.init_model()
+    seen = []
+    for step in range(8):
+        out = tr.step(step)
+        assert np.isfinite(out["loss"])
+        if "spike_flow" in out["losses"]:
+            seen.append(out["losses"]["spike_flow"])
+    assert seen and all(np.isfinite(v) and v >= 0 for v in seen)
+    assert tr.spike_flow.last["gaussians"] > 0 and tr.spike_flow._flows
+    off = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "spike_flow_weight": 0.0}), device="cpu")
+    assert "spike_flow" not in {t.name for t in off.loss_terms}
+
+
+def test_fit_inner_residuals_recovers_a_bump():
+    """Curves at rest at both ends; targets = a known bump a(u) D0 + b(u) D1: the least-squares
+    change is D (up to the small ridge), and unobserved curves (weight 0) do not move."""
+    from engine.train.spike_flow import fit_inner_residuals, segment_basis
+
+    u = torch.arange(1, 16, dtype=torch.float32) / 16
+    D = torch.tensor([[[0.02, -0.01, 0.0], [0.03, 0.0, 0.01]], [[-0.05, 0.02, 0.0], [-0.04, 0.02, 0.0]],
+                      [[0.01, 0.01, 0.01], [0.01, 0.01, 0.01]]])
+    B = segment_basis(u)
+    cur = torch.zeros(15, 3, 3)
+    tgt = torch.einsum("ja,mac->jmc", B, D)
+    w = torch.ones(15, 3)
+    w[:, 2] = 0.0
+    dD = fit_inner_residuals(cur, tgt, w, u, ridge=1e-6)
+    assert torch.allclose(dD[:2], D[:2], atol=1e-4)
+    assert torch.allclose(dD[2], torch.zeros(2, 3))
+
+
+def test_lift_inverts_project():
+    vm = torch.tensor([[1.0, 0.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [0.0, 1.0, 0.0, 1.5], [0.0, 0.0, 0.0, 1.0]])
+    x = torch.tensor([[0.1, 0.3, -0.2], [-0.4, 1.0, 0.5]])
+    from engine.train.spike_flow import lift
+
+    uv, z = project(x, vm, K)
+    assert torch.allclose(lift(uv, z, vm, K), x, atol=1e-5)
+
+
+def test_surface_is_found_and_reused_for_a_few_steps():
+    """A toy model in front of the fake spike camera: surface() finds Gaussians the render sees;
+    cached_surface() renders again only after SURFACE_EVERY steps or when the count changes,
+    and re-projects the cached Gaussians' pixels every call."""
+    sup, _ = _fake_supervision()
+    m = _traj_model(n=30)
+    renders = []
+    real = sup.surface
+
+    def counting(model, t_ref):
+        renders.append(t_ref)
+        return real(model, t_ref)
+
+    sup.surface = counting
+    idx, uv = sup.cached_surface(m, 0.1, step=100)
+    assert idx.numel() > 0 and uv.shape == (idx.numel(), 2)
+    assert bool(((uv[:, 0] >= 0) & (uv[:, 0] < 80) & (uv[:, 1] >= 0) & (uv[:, 1] < 60)).all())
+    with torch.no_grad():  # move the curves: the cached set is re-projected, not re-rendered
+        getattr(m.gaussians, TRAJ_MEANS)[:, 3] += torch.tensor([0.01, 0.0, 0.0])
+    idx2, uv2 = sup.cached_surface(m, 0.1, step=105)
+    assert len(renders) == 1 and torch.equal(idx, idx2)
+    assert torch.allclose(uv2[:, 0] - uv[:, 0], 80.0 * 0.01 / project(m.gaussians.means.detach()[idx]
+                                                                        + torch.tensor([0.01, 0.0, 0.0]),
+                                                                        VIEWMAT, K)[1], atol=1e-3)
+    sup.cached_surface(m, 0.1, step=100 + sup.SURFACE_EVERY)
+    assert len(renders) == 2
+    sup.cached_surface(m, 0.2, step=111)  # another RGB instant: its own set
+    assert len(renders) == 3
