@@ -349,8 +349,8 @@ class SpikeFlowSupervision:
 
     def __call__(self, ctx):
         guid = self.guidance
-        b = guid.between(ctx)
-        if b is None or b["camera"] != guid.colocated:
+        b = guid.colocated_between(ctx)
+        if b is None:
             return None
         tr = ctx.trainer
         model = tr.model

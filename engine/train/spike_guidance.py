@@ -336,11 +336,17 @@ class SpikeGuidance:
         ctx.__dict__["_between"] = out
         return out
 
+    def colocated_between(self, ctx) -> dict | None:
+        """This step's between-frame render (:meth:`between`) when it was made at the spike
+        camera's viewpoint -- what every spike-view term needs -- else None."""
+        b = self.between(ctx)
+        return b if b is not None and b["camera"] == self.colocated else None
+
 
 def _spike_term(guid: SpikeGuidance):
     def fn(ctx):
-        b = guid.between(ctx)
-        if b is None or b["camera"] != guid.colocated or guid.renderer is None:
+        b = guid.colocated_between(ctx)
+        if b is None or guid.renderer is None:
             return None
         m = int(guid.cfg.spike_window)
         counts, frames, n = guid.observed(b["instant"].time, m)
