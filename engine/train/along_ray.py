@@ -151,14 +151,11 @@ class AlongRayPrior:
         return out
 
     def __call__(self, ctx):
-        guid = self.guidance
-        b = guid.colocated_between(ctx)
-        if b is None:
+        hit = self.guidance.deforming_spike_view(ctx)
+        if hit is None:
             return None
+        b, model = hit
         tr = ctx.trainer
-        model = tr.model
-        if model is None or not model.use_deformation:
-            return None
         t = float(b["instant"].time)
         window = getattr(tr, "time_window", None)
         admitted = window(ctx.step) if callable(window) else self.times[-1]

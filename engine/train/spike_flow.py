@@ -348,14 +348,11 @@ class SpikeFlowSupervision:
                 self.fitted[k] = self.fit_interval(tr.model, k, float(tr.extent))
 
     def __call__(self, ctx):
-        guid = self.guidance
-        b = guid.colocated_between(ctx)
-        if b is None:
+        hit = self.guidance.deforming_spike_view(ctx)
+        if hit is None or hit[1].trajectory is None:
             return None
+        b, model = hit
         tr = ctx.trainer
-        model = tr.model
-        if model is None or not model.use_deformation or model.trajectory is None:
-            return None
         window = getattr(tr, "time_window", None)
         admitted = window(ctx.step) if callable(window) else self.times[-1]
         pair = self.instants(float(b["instant"].time), admitted)

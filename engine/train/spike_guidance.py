@@ -342,6 +342,15 @@ class SpikeGuidance:
         b = self.between(ctx)
         return b if b is not None and b["camera"] == self.colocated else None
 
+    def deforming_spike_view(self, ctx) -> tuple[dict, object] | None:
+        """(:meth:`colocated_between`, the trainer's model) when there is such a render and the
+        model deforms (the terms that move motion at the spike view need both), else None."""
+        b = self.colocated_between(ctx)
+        model = ctx.trainer.model
+        if b is None or model is None or not model.use_deformation:
+            return None
+        return b, model
+
 
 def _spike_term(guid: SpikeGuidance):
     def fn(ctx):
