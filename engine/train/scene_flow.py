@@ -127,6 +127,12 @@ def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_
     return out.astype(np.float32), carried
 
 
+def _hand_over(delta: np.ndarray, decided: np.ndarray):
+    """(a copy of ``delta`` to fill, taken bool [N] all False, decided rows, undecided rows)."""
+    return (np.asarray(delta, np.float32).copy(), np.zeros(len(decided), dtype=bool),
+            np.nonzero(decided)[0], np.nonzero(~decided)[0])
+
+
 def propagate_to_hidden(positions: np.ndarray, delta: np.ndarray, decided: np.ndarray, max_dist: float,
                         chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """Give each undecided Gaussian (hidden at ``t_a``: inside or behind a moving object)
@@ -139,10 +145,7 @@ def propagate_to_hidden(positions: np.ndarray, delta: np.ndarray, decided: np.nd
     if DENSE_SEARCH:
         return propagate_to_hidden_dense(positions, delta, decided, max_dist, chunk)
     pos = np.asarray(positions, np.float32)
-    out = np.asarray(delta, np.float32).copy()
-    taken = np.zeros(len(pos), dtype=bool)
-    src = np.nonzero(decided)[0]
-    dst = np.nonzero(~decided)[0]
+    out, taken, src, dst = _hand_over(delta, decided)
     if len(src) == 0 or len(dst) == 0:
         return out, taken
     j, _ = nearest_within(pos[dst], pos[src], max_dist)
@@ -160,10 +163,7 @@ def propagate_to_hidden_dense(positions: np.ndarray, delta: np.ndarray, decided:
                               chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """:func:`propagate_to_hidden` by a dense float32 ``torch.cdist`` (as before issue 13)."""
     pos = torch.as_tensor(np.asarray(positions, np.float32))
-    out = np.asarray(delta, np.float32).copy()
-    taken = np.zeros(len(pos), dtype=bool)
-    src = np.nonzero(decided)[0]
-    dst = np.nonzero(~decided)[0]
+    out, taken, src, dst = _hand_over(delta, decided)
     if len(src) == 0 or len(dst) == 0:
         return out, taken
     ps = pos[torch.from_numpy(src)]
