@@ -40,6 +40,7 @@ import torch.nn.functional as F
 from ..scene import trajectory as traj
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
 from .losses import LossTerm
+from .spike_guidance import spike_view_guidance
 
 __all__ = ["along_ray_factory", "along_ray_loss", "along_ray_target", "motion_positions", "ray_depth"]
 
@@ -193,8 +194,8 @@ def along_ray_factory(trainer) -> list:
     """The along-ray term for a (non rgb_only) run with ``lambda_along_ray > 0`` and a spike
     loss (it needs the spike guidance's between-frame render); nothing otherwise."""
     cfg = trainer.cfg
-    guid = getattr(trainer, "spike_guidance", None)
-    if cfg.lambda_along_ray <= 0 or guid is None or guid.renderer is None or cfg.spike_loss_weight <= 0:
+    guid = spike_view_guidance(trainer)
+    if cfg.lambda_along_ray <= 0 or guid is None:
         return []
     prior = AlongRayPrior(trainer, guid)
     trainer.along_ray = prior

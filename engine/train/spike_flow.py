@@ -44,6 +44,8 @@ from ..scene import trajectory as traj
 from ..scene.model import TRAJ_MEANS, Model4D
 from .baselines import spike_to_gray
 from .losses import LossTerm
+from .scene_flow import dense_flow, propagate_to_hidden
+from .spike_guidance import spike_view_guidance
 
 __all__ = ["gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map", "project", "lift",
            "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions",
@@ -57,24 +59,6 @@ def gray_to_u8(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     hi = float(np.percentile(np.concatenate([a.ravel(), b.ravel()]), 99.5)) or 1.0
     enc = lambda x: (np.clip(x / hi, 0.0, 1.0) ** (1.0 / 2.2) * 255.0 + 0.5).astype(np.uint8)  # noqa: E731
     return enc(a), enc(b)
-
-
-def dense_flow(a_u8: np.ndarray, b_u8: np.ndarray, upsample: int = 2) -> np.ndarray:
-    """DIS optical flow [h, w, 2] (x, y pixels) with ``a(p) ~ b(p + flow(p))`` (OpenCV's
-    ``calc(prev=a, next=b)`` convention). Spike frames are small (e.g. 80 x 60): the images
-    are upsampled ``upsample`` x so DIS's patches and pyramid have room, and the flow is
-    brought back to the input's pixels."""
-    h, w = a_u8.shape
-    s = max(1, int(upsample))
-    if s > 1:
-        a_u8 = cv2.resize(a_u8, (w * s, h * s), interpolation=cv2.INTER_CUBIC)
-        b_u8 = cv2.resize(b_u8, (w * s, h * s), interpolation=cv2.INTER_CUBIC)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    dis.setFinestScale(0)
-    flow = dis.calc(np.ascontiguousarray(a_u8), np.ascontiguousarray(b_u8), None)
-    if s > 1:
-        flow = cv2.resize(flow, (w, h), interpolation=cv2.INTER_AREA) / float(s)
-    return flow.astype(np.float32)
 
 
 def forward_backward_valid(fw: np.ndarray, bw: np.ndarray, tol_px: float = 0.5, tol_rel: float = 0.1) -> np.ndarray:
@@ -289,7 +273,6 @@ class SpikeFlowSupervision:
         flow from ``T_k`` says (depth kept from the current curve: image-plane motion only);
         Gaussians within ``traj_carry_hidden`` x extent of them that the spike view does not
         see (inside or behind the surface) take their nearest one's change. Returns counts."""
-        from .scene_flow import propagate_to_hidden
 
         a, b = self.times[k], self.times[k + 1]
         n = max(1, int(self.cfg.spike_flow_steps))
@@ -388,8 +371,8 @@ def spike_flow_factory(trainer) -> list:
     """The flow term for a (non rgb_only) run with ``spike_flow_weight > 0``, per-Gaussian
     trajectories and a spike loss (whose between-frame instants it uses); nothing otherwise."""
     cfg = trainer.cfg
-    guid = getattr(trainer, "spike_guidance", None)
-    if cfg.spike_flow_weight <= 0 or guid is None or guid.renderer is None or cfg.spike_loss_weight <= 0:
+    guid = spike_view_guidance(trainer)
+    if cfg.spike_flow_weight <= 0 or guid is None:
         return []
     stream = guid.stream
     if "trajectory" not in cfg.motion or stream is None or stream.c2w is None or stream.intrinsics is None:

@@ -37,7 +37,7 @@ from .interpolation import avg_pool_blocks, block_colour_loss, flow_consistency,
 from .losses import LossTerm
 from .presets import block_weight
 
-__all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info"]
+__all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info", "spike_view_guidance"]
 
 def spike_stream_info(capture):
     """The first spike stream co-located with a training RGB camera (or None)."""
@@ -135,6 +135,7 @@ class SpikeGuidance:
             if self.stream.num_frames * self.stream.width * self.stream.height <= 256 * 2 ** 20:
                 self._spikes = self.stream.read(0, self.stream.num_frames)
         self._flows: dict = {}
+        self._consistency: dict = {}  # occlusion maps of each flow pair (flow_consistency)
         if block_weight(cfg) > 0 and cfg.block_interp == "flow":
             self.precompute_flows()
         self.rng = np.random.default_rng(trainer.seed + 17)
@@ -269,10 +270,10 @@ class SpikeGuidance:
         if key not in self._flows:
             _, flows = flow_interpolate(a, b, 0.5, return_flows=True)
             self._flows[key] = flows
-        cons = self.__dict__.setdefault("_consistency", {})
-        if key not in cons:  # occlusion maps of the pair: the same at every instant
-            cons[key] = flow_consistency(*self._flows[key])
-        return flow_interpolate(a, b, eps, flows=self._flows[key], consistency=cons[key]).clamp(0, 1)[None]
+        if key not in self._consistency:  # occlusion maps of the pair: the same at every instant
+            self._consistency[key] = flow_consistency(*self._flows[key])
+        return flow_interpolate(a, b, eps, flows=self._flows[key],
+                                consistency=self._consistency[key]).clamp(0, 1)[None]
 
     TARGET_STEPS = 64  # block-colour targets are interpolated at 1/64-interval steps (cached)
     TARGET_CACHE_BYTES = 256 * 2 ** 20
@@ -401,6 +402,16 @@ def _tick_fine(tr, step, item, meta) -> None:
     enc = getattr(field, "fine_encoder", None)
     if isinstance(enc, SpikeFineEncoder):
         enc.encoded.tick()
+
+
+def spike_view_guidance(trainer) -> SpikeGuidance | None:
+    """The run's spike guidance when its spike loss renders at the spike camera (a renderer
+    and ``spike_loss_weight > 0``): what the terms riding on those renders (the along-ray
+    prior, the spike-view flow) need; None otherwise."""
+    guid = getattr(trainer, "spike_guidance", None)
+    if guid is None or guid.renderer is None or trainer.cfg.spike_loss_weight <= 0:
+        return None
+    return guid
 
 
 def guidance_factory(trainer) -> list:
