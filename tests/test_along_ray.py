@@ -7,6 +7,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from train_util import term_values, trajectory_model
 
 from engine.scene.deformation import DeformationField
 from engine.scene.gaussians import GaussianModel
@@ -26,14 +27,7 @@ CENTER = torch.tensor([0.2, -0.1, -3.0])
 
 def _traj_model(n=12, seed=0):
     """Gaussians in front of CENTER, static at every RGB instant (zero junctions)."""
-    rng = np.random.default_rng(seed)
-    xyz = rng.normal(size=(n, 3)) * 0.3
-    g = GaussianModel(xyz, rng.uniform(size=(n, 3)))
-    g.setup_optimizer(get_preset("fast"), 1.0)
-    m = Model4D(g)
-    m.add_trajectories(KNOTS, 1e-3, 1e-3)
-    m.use_deformation = True
-    return m
+    return trajectory_model(KNOTS, n, seed, spread=0.3)
 
 
 def _loss_at(m, t, idx):
@@ -177,11 +171,6 @@ def test_trainer_steps_with_the_prior(demo_capture, motion):
     over = {**_TINY, "lambda_along_ray": 1.0, "motion": motion, "traj_carry": "velocity"}
     tr = Trainer(load_capture(demo_capture), get_preset("fast", over), device="cpu")
     tr.init_model()
-    seen = []
-    for step in range(8):
-        out = tr.step(step)
-        assert np.isfinite(out["loss"])
-        if "along_ray" in out["losses"]:
-            seen.append(out["losses"]["along_ray"])
+    seen = term_values(tr, "along_ray", steps=8)
     assert seen and all(np.isfinite(v) and v >= 0 for v in seen)
     assert tr.along_ray.last["gaussians"] > 0

@@ -7,9 +7,9 @@ import types
 import numpy as np
 import pytest
 import torch
+from train_util import term_values, trajectory_model
 
-from engine.scene.gaussians import GaussianModel
-from engine.scene.model import TRAJ_MEANS, Model4D
+from engine.scene.model import TRAJ_MEANS
 from engine.train.presets import get_preset
 from engine.train.spike_flow import (
     SpikeFlowSupervision,
@@ -71,14 +71,7 @@ K = torch.tensor([[80.0, 0.0, 40.0], [0.0, 80.0, 30.0], [0.0, 0.0, 1.0]])
 
 
 def _traj_model(n=8, seed=0):
-    rng = np.random.default_rng(seed)
-    xyz = rng.normal(size=(n, 3)) * 0.1 + np.array([0.0, 0.0, 2.0])
-    g = GaussianModel(xyz, rng.uniform(size=(n, 3)))
-    g.setup_optimizer(get_preset("fast"), 1.0)
-    m = Model4D(g)
-    m.add_trajectories(KNOTS, 1e-3, 1e-3)
-    m.use_deformation = True
-    return m
+    return trajectory_model(KNOTS, n, seed, spread=0.1, centre=(0.0, 0.0, 2.0))
 
 
 def test_loss_bends_the_curve_toward_a_known_displacement():
@@ -197,12 +190,7 @@ def test_trainer_steps_with_the_flow_term(demo_capture):
     tr = Trainer(load_capture(demo_capture), get_preset("fast", _TINY), device="cpu")
     assert "spike_flow" in {t.name for t in tr.loss_terms}
     tr.init_model()
-    seen = []
-    for step in range(8):
-        out = tr.step(step)
-        assert np.isfinite(out["loss"])
-        if "spike_flow" in out["losses"]:
-            seen.append(out["losses"]["spike_flow"])
+    seen = term_values(tr, "spike_flow", steps=8)
     assert seen and all(np.isfinite(v) and v >= 0 for v in seen)
     assert tr.spike_flow.last["gaussians"] > 0 and tr.spike_flow._flows
     off = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "spike_flow_weight": 0.0}), device="cpu")

@@ -1,0 +1,33 @@
+"""Helpers for tests that drive real training steps."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def term_values(trainer, name: str, steps: int = 8) -> list[float]:
+    """Run ``trainer.step`` for steps 0..steps-1 (each step's total loss must be finite) and
+    return the values the loss term ``name`` reported, in order (steps without it skipped)."""
+    seen = []
+    for step in range(steps):
+        out = trainer.step(step)
+        assert np.isfinite(out["loss"])
+        if name in out["losses"]:
+            seen.append(out["losses"][name])
+    return seen
+
+
+def trajectory_model(knots, n: int, seed: int = 0, spread: float = 0.1, centre=(0.0, 0.0, 0.0)):
+    """A deforming ``Model4D`` of ``n`` Gaussians (normal around ``centre``, std ``spread``)
+    with per-Gaussian trajectories over ``knots``, all at rest (zero curves), optimiser set up."""
+    from engine.scene.gaussians import GaussianModel
+    from engine.scene.model import Model4D
+    from engine.train.presets import get_preset
+
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(size=(n, 3)) * spread + np.asarray(centre, np.float64)
+    g = GaussianModel(xyz, rng.uniform(size=(n, 3)))
+    g.setup_optimizer(get_preset("fast"), 1.0)
+    m = Model4D(g)
+    m.add_trajectories(knots, 1e-3, 1e-3)
+    m.use_deformation = True
+    return m
