@@ -76,7 +76,7 @@ def render(scene, backend, grads=True, loss_weights=(1.0, 0.3, 0.1), **kw):
     if grads:
         meta["means2d"].retain_grad()
         g = torch.Generator().manual_seed(123)
-        wc = torch.rand(colors.shape, generator=g, dtype=colors.dtype)
+        wc = torch.rand(colors.shape, generator=g, dtype=colors.dtype).to(colors.device)
         loss = loss_weights[0] * (colors * wc).sum() + loss_weights[1] * (alphas * alphas).sum()
         if "depths" in meta:
             loss = loss + loss_weights[2] * meta["depths"].sum()

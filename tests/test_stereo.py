@@ -213,3 +213,19 @@ def test_trainer_fuses_the_pair_once_for_init_and_depth_priors(demo_capture, mon
     assert tr.init_info["method"] == "stereo"
     assert any("stereo_depth" in it for it in tr.items)
     assert len(calls) == 1
+
+
+def test_rectification_passes_opencv5_shaped_arguments(monkeypatch):
+    """OpenCV 5 rejects a flat (3,) translation in stereoRectify ('a_size.width == len in
+    gemm'; OpenCV 4 accepted it): found on the GPU box, whose image ships OpenCV 5.0.0. The
+    pinned OpenCV here is 4.x, so the shapes are checked on the way in."""
+    real = cv2.stereoRectify
+    seen = {}
+
+    def strict(K1, d1, K2, d2, size, R, T, *args, **kwargs):
+        seen["R"], seen["T"] = np.shape(R), np.shape(T)
+        return real(K1, d1, K2, d2, size, R, T, *args, **kwargs)
+
+    monkeypatch.setattr(cv2, "stereoRectify", strict)
+    rectify_pair(_view([-0.1, 0, 0], [-0.1, 3, 0], "a"), _view([0.1, 0, 0], [0.1, 3, 0], "b"))
+    assert seen == {"R": (3, 3), "T": (3, 1)}
