@@ -140,9 +140,10 @@ def rectify_pair(view_a, view_b, *, min_baseline: float = 1e-6, min_overlap: flo
         raise StereoUnavailable(f"cameras {view_a.name or 'a'} ({ka.width}x{ka.height}) and {view_b.name or 'b'} "
                                 f"({kb.width}x{kb.height}) differ in size; rectification needs one image size")
     size = (int(round(ka.width * scale)), int(round(ka.height * scale)))
+    # T as a column: OpenCV 5 refuses a flat (3,) translation here (OpenCV 4 accepted it)
     R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(_cv_K(view_a), None, _cv_K(view_b), None,
-                                                        (ka.width, ka.height), R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
-                                                        alpha=1.0, newImageSize=size)
+                                                        (ka.width, ka.height), R, T.reshape(3, 1),
+                                                        flags=cv2.CALIB_ZERO_DISPARITY, alpha=1.0, newImageSize=size)
     vertical = abs(P2[1, 3]) > abs(P2[0, 3])
     tx = P2[1, 3] if vertical else P2[0, 3]
     focal = float(P1[0, 0])
