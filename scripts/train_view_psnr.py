@@ -30,14 +30,16 @@ from engine.scene.model import load_run  # noqa: E402
 
 
 def train_view_scores(scene, cap, threshold: float = 0.04, dilate: int = 2) -> dict:
-    """{psnr, psnr_moving, n_frames, n_moving}: means over the train cameras' RGB frames."""
+    """{psnr, psnr_moving, n_frames, n_moving, per_frame}: means over the train cameras' RGB
+    frames, and per frame ``[camera, time, psnr, psnr_moving or None]`` (where in time a run
+    fails, e.g. the instants the time curriculum opens last)."""
     by_cam: dict[str, list] = {}
     for f in cap.frames:
         cam = cap.cameras.get(f.camera)
         if cam is not None and getattr(cam, "role", "train") != "train":
             continue
         by_cam.setdefault(f.camera, []).append(f)
-    whole, moving = [], []
+    whole, moving, per_frame = [], [], []
     for fs in by_cam.values():
         fs = sorted(fs, key=lambda fr: fr.time)
         gts = [np.asarray(fr.load_rgb(), np.float32)[..., :3] for fr in fs]
@@ -46,8 +48,9 @@ def train_view_scores(scene, cap, threshold: float = 0.04, dilate: int = 2) -> d
             whole.append(psnr(pred, gt))
             if mask.any():
                 moving.append(psnr(pred, gt, mask))
+            per_frame.append([fr.camera, float(fr.time), whole[-1], moving[-1] if mask.any() else None])
     return {"psnr": float(np.mean(whole)), "psnr_moving": float(np.mean(moving)) if moving else float("nan"),
-            "n_frames": len(whole), "n_moving": len(moving)}
+            "n_frames": len(whole), "n_moving": len(moving), "per_frame": per_frame}
 
 
 def main(argv=None) -> int:
