@@ -313,6 +313,20 @@ class GaussianModel(nn.Module):
             return {"cloned": int(clone.sum()), "split": ns, "pruned": int(prune.sum()) - ns,
                     "total": self.num_gaussians}
 
+    def append(self, rows: dict[str, torch.Tensor]) -> int:
+        """Add Gaussians: ``rows`` holds every name of :attr:`param_names` as [M, ...]. They
+        start with zero Adam moments and densification statistics; the old rows keep theirs."""
+        m = int(rows["means"].shape[0])
+        if m == 0:
+            return 0
+        with torch.no_grad():
+            new = {n: torch.cat([getattr(self, n).detach(), rows[n].to(getattr(self, n))]) for n in self.param_names}
+            self._replace(new, None, m)
+            zeros = torch.zeros(m, device=self.grad_accum.device, dtype=self.grad_accum.dtype)
+            self.grad_accum = torch.cat([self.grad_accum, zeros])
+            self.grad_count = torch.cat([self.grad_count, zeros])
+        return m
+
     def prune(self, mask: torch.Tensor) -> None:
         """Remove rows where ``mask`` is True."""
         keep = ~mask

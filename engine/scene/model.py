@@ -29,6 +29,15 @@ from .gaussians import GaussianModel, num_sh_bases
 # per-Gaussian trajectory parameters (GaussianModel extras, issue 11): [N, K, 3] position
 # offsets and [N, K, 4] quaternion residuals (engine.scene.trajectory)
 TRAJ_MEANS, TRAJ_QUATS = "traj_means", "traj_quats"
+# temporal opacity (Spacetime Gaussians, Li et al. CVPR 2024, eq. 3 as a Gaussian in time):
+# [N, 1] centre (capture seconds) and log standard deviation; only Gaussians born at an
+# admitted instant (engine.train.births) have a short life, the rest get exp(30) s
+TIME_CENTER, TIME_LOG_SCALE = "time_center", "time_log_scale"
+
+
+def temporal_opacity(center: torch.Tensor, log_scale: torch.Tensor, t: float) -> torch.Tensor:
+    """[N] factor ``exp(-((t - center) / exp(log_scale))^2 / 2)`` on the opacities at ``t``."""
+    return torch.exp(-0.5 * ((float(t) - center[:, 0]) * torch.exp(-log_scale[:, 0])) ** 2)
 
 
 def default_device(device=None) -> torch.device:
@@ -124,8 +133,14 @@ class Model4D(nn.Module):
         colors = g.colors(means, campos, sh=sh)
         if color_delta is not None:
             colors = (colors + color_delta).clamp_min(0.0)
+        opacities = torch.sigmoid(opac)
+        if self.use_deformation and TIME_CENTER in g.extra_lrs:
+            c, s = getattr(g, TIME_CENTER), getattr(g, TIME_LOG_SCALE)
+            if motion_only:
+                c, s = c.detach(), s.detach()
+            opacities = opacities * temporal_opacity(c, s, t)
         return {"means": means, "quats": quats, "scales": torch.exp(log_scales),
-                "opacities": torch.sigmoid(opac), "colors": colors}
+                "opacities": opacities, "colors": colors}
 
     def render(self, vt: dict, t: float | None = None, *, background=None, fine=None, backend="auto",
                render_depth: bool = True, motion_only: bool = False):

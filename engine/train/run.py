@@ -225,6 +225,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     skips = trainer.skip_summary()
     if trainer.carry_info:  # trajectories carried by scene flow (issue 11)
         update_run_json(run_dir, trajectory_carry=trainer.carry_info)
+    if getattr(trainer, "birth_info", None):  # Gaussians born at admitted instants (engine.train.births)
+        update_run_json(run_dir, births=trainer.birth_info)
     summary = {
         "status": status, "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
         "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),

@@ -352,6 +352,9 @@ class Trainer:
             from .scene_flow import carry_trajectories
 
             self.carry_info.append(carry_trajectories(self, train_frames(self.capture), knots, li, li + 1))
+        if self.cfg.birth_error > 0 and li + 1 < len(knots):
+            from .births import spawn_at_instant
+            spawn_at_instant(self, train_frames(self.capture), knots[li + 1])  # records in self.birth_info
 
     def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
         """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
