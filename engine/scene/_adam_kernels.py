@@ -68,3 +68,65 @@ def update(p, m, v, root, bc2s, eps, neg_step):
     for i in range(p.size):
         sq = root[i] if v[i] != 0 else zero
         p[i] = p[i] + (neg_step * m[i]) / (sq / bc2s + eps)
+
+
+# ---- selective (sparse) Adam: engine.scene.selective_adam ------------------------------------
+# The same per-element arithmetic as :func:`moments` / :func:`update`, over the rows a step
+# selects and, within each row, the element spans ``[start, stop)`` it selects (a curve's
+# touched control-point columns); the square roots travel in a compact buffer in visiting
+# order (rows ascending, spans in order), so torch's ``sqrt`` runs on the selected elements only.
+
+
+@njit(cache=True, nogil=True)
+def selective_moments(g, m, v, visible, spans, w1, b2, c2, root_in, sel):
+    """:func:`moments` on the rows ``r`` of the [N, D] arrays ``g, m, v`` (float32) with
+    ``visible[r]`` or a nonzero gradient in a span, at the elements of ``spans`` [S, 2]
+    (int64 ``(start, stop)``) only. Writes the selected rows to ``sel`` [N] (ascending)
+    and the root inputs compactly to ``root_in``; returns (rows selected, elements written)."""
+    one = np.float32(1.0)
+    low = abs(w1) < np.float32(0.5)  # torch's lerp: two formulas around weight 0.5
+    w1m = w1 - one
+    n_sel = 0
+    k = 0
+    for r in range(g.shape[0]):
+        take = visible[r]
+        if not take:  # a loss term that is not a render (a prior, the spike-view flow) reached it
+            for s in range(spans.shape[0]):
+                for j in range(spans[s, 0], spans[s, 1]):
+                    if g[r, j] != 0:
+                        take = True
+                        break
+                if take:
+                    break
+        if not take:
+            continue
+        sel[n_sel] = r
+        n_sel += 1
+        for s in range(spans.shape[0]):
+            for j in range(spans[s, 0], spans[s, 1]):
+                gi = g[r, j]
+                mi = m[r, j]
+                if low:
+                    m[r, j] = _fma32(w1, gi - mi, mi)
+                else:
+                    m[r, j] = _fma32(w1m, gi - mi, gi)
+                vi = _fma32(c2 * gi, gi, v[r, j] * b2)
+                v[r, j] = vi
+                root_in[k] = vi if vi != 0 else one
+                k += 1
+    return n_sel, k
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def selective_update(p, m, v, root, sel, n_sel, spans, bc2s, eps, neg_step):
+    """:func:`update` on the rows ``sel[:n_sel]`` and ``spans`` of :func:`selective_moments`,
+    reading its compact square roots ``root`` in the same order."""
+    zero = np.float32(0.0)
+    k = 0
+    for i in range(n_sel):
+        r = sel[i]
+        for s in range(spans.shape[0]):
+            for j in range(spans[s, 0], spans[s, 1]):
+                sq = root[k] if v[r, j] != 0 else zero
+                p[r, j] = p[r, j] + (neg_step * m[r, j]) / (sq / bc2s + eps)
+                k += 1

@@ -37,6 +37,10 @@ class TrainConfig:
     lr_sh_dc: float = 2.5e-3
     lr_sh_rest: float = 2.5e-3 / 20
     init_opacity: float = 0.1
+    # the Gaussians' optimizer: exact (FusedAdam, torch's Adam bit for bit) | selective (only the
+    # rows visible in the step's renders and the curve columns its times read move; gsplat's
+    # SelectiveAdam / Taming 3DGS, engine.scene.selective_adam)
+    gaussian_adam: str = "exact"
 
     # ---- densification (3DGS rules, schedule in fractions of `iterations`) ---------------
     densify_from: float = 0.05
