@@ -93,16 +93,23 @@ class SelectiveAdam(FusedAdam):
         finally:
             trajectory.clear_touched()
 
+    def _buffers(self, need: int, n: int):
+        """Scratch: compact square roots (a tensor: torch's sqrt runs on it), new first
+        moments and zero flags of ``need`` elements, selected rows of ``n``."""
+        b = getattr(self, "_bufs", None)
+        if b is None or b[0].numel() < need or b[3].shape[0] < n:
+            b = self._bufs = (torch.empty(need, dtype=torch.float32), np.empty(need, np.float32),
+                              np.empty(need, np.bool_), np.empty((n, 2), np.uint64))
+        return b
+
     @torch.no_grad()
     def _selective_step(self, visible: torch.Tensor) -> None:
         vis = np.ascontiguousarray(visible.detach().cpu().numpy().astype(np.bool_))
         n = vis.shape[0]
         all_rows = bool(vis.all())
         need = max((p.numel() for g in self.param_groups for p in g["params"] if p.grad is not None), default=0)
-        scratch = getattr(self, "_scratch", None)
-        if scratch is None or scratch.numel() < need:
-            scratch = self._scratch = torch.empty(need, dtype=torch.float32)
-        sel = np.empty(n, dtype=np.int64)
+        root_t, m_new, zero, runs = self._buffers(need, n)
+        root = root_t.numpy()
         k = KERNELS.module
         f32 = np.float32
         selected = 0
@@ -126,19 +133,22 @@ class SelectiveAdam(FusedAdam):
                     cols = trajectory.touched_columns(p.shape[1])  # None: no record, every column
                 if p.dim() == 0 or p.shape[0] != n or (all_rows and cols is None):
                     fused_adam._fused_update(p, p.grad, m, v, step, lr, float(beta1), float(beta2),
-                                             float(g["eps"]), scratch)
+                                             float(g["eps"]), root_t)
                     continue
                 bias_correction2_sqrt = (1 - beta2 ** step) ** 0.5
                 step_size = lr / (1 - beta1 ** step)
-                pf, gf, mf, vf = (t.detach().view(n, -1).numpy() for t in (p, p.grad, m, v))
+                d = p.numel() // n if n else 0
+                pf, gf, mf, vf = (t.detach().view(-1).numpy() for t in (p, p.grad, m, v))
                 spans = _spans(cols, tuple(p.shape))
-                root = scratch.numpy()
-                n_sel, n_el = k.selective_moments(gf, mf, vf, vis, spans, f32(1 - beta1), f32(beta2),
-                                                  f32(1 - beta2), root, sel)
+                if runs.shape[0] < n * spans.shape[0]:
+                    runs = np.empty((n * spans.shape[0], 2), np.uint64)
+                n_runs, n_sel, n_el = k.select_runs(gf, d, vis, spans, runs)
                 if n_el:
-                    r = scratch[:n_el]
+                    k.selective_moments(gf, mf, vf, runs, n_runs, f32(1 - beta1), f32(beta2), f32(1 - beta2),
+                                        root, m_new, zero)
+                    r = root_t[:n_el]
                     torch.sqrt(r, out=r)  # torch's (MKL's) rounding, as FusedAdam
-                    k.selective_update(pf, mf, vf, root, sel, n_sel, spans, f32(bias_correction2_sqrt),
+                    k.selective_update(pf, runs, n_runs, root, m_new, zero, f32(bias_correction2_sqrt),
                                        f32(g["eps"]), f32(-step_size))
                 selected = max(selected, int(n_sel))
         self.last_selected = (selected, n)
