@@ -45,7 +45,7 @@ from engine.scene import fused_adam, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import interpolation, scene_flow, spike_guidance
+from engine.train import fused_ssim, interpolation, scene_flow, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -295,6 +295,8 @@ VARIANTS = {
     "adam-selective": {"doc": "gaussian_adam=selective: only the rows the step's renders see and the curve "
                               "columns its times read (engine.scene.selective_adam)", "hexplane_sampler": "auto",
                        "overrides": {"gaussian_adam": "selective"}},
+    "ssim-msssim": {"doc": "the D-SSIM term by pytorch_msssim (conv2d + autograd), as before the fused SSIM",
+                    "hexplane_sampler": "auto", "patches": {(fused_ssim, "ENABLED"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

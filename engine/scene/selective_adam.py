@@ -178,3 +178,19 @@ def reference_step(p: torch.Tensor, grad: torch.Tensor, m: torch.Tensor, v: torc
     denom = (vs.sqrt() / (bc2 ** 0.5)).add_(eps)
     ps.addcdiv_(ms, denom, value=-(lr / bc1))
     m[el], v[el], p[el] = ms, vs, ps
+
+
+def warmup() -> float:
+    """Compile (first run on a machine) or load the selective kernels now; seconds taken."""
+    import time
+
+    t0 = time.perf_counter()
+    if exact():
+        p = torch.nn.Parameter(torch.zeros(4, 4, 3))
+        opt = SelectiveAdam([{"params": [p], "lr": 1e-3, "name": "w"}], lr=0.0)
+        opt.curves.add("w")
+        p.grad = torch.ones_like(p)
+        opt.note_visible(torch.tensor([[1, 0, 1, 1]]))
+        trajectory._note_touched(4, [1])
+        opt.step()
+    return time.perf_counter() - t0
