@@ -297,6 +297,9 @@ VARIANTS = {
                        "overrides": {"gaussian_adam": "selective"}},
     "ssim-msssim": {"doc": "the D-SSIM term by pytorch_msssim (conv2d + autograd), as before the fused SSIM",
                     "hexplane_sampler": "auto", "patches": {(fused_ssim, "ENABLED"): False}},
+    "adam-ssim-before": {"doc": "gaussian_adam=exact and pytorch_msssim's D-SSIM: the optimizer and the SSIM as "
+                                "before SelectiveAdam and the fused SSIM", "hexplane_sampler": "auto",
+                        "overrides": {"gaussian_adam": "exact"}, "patches": {(fused_ssim, "ENABLED"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
