@@ -41,11 +41,11 @@ from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
-from engine.scene import fused_adam, trajectory
+from engine.scene import fused_adam, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import interpolation, scene_flow, spike_guidance
+from engine.train import fused_ssim, interpolation, scene_flow, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -152,7 +152,7 @@ class StepProfiler:
         for name in ("add_densification_stats", "densify_and_prune", "reset_opacity"):
             self._wrap(GaussianModel, name, "densify")
         self._wrap(Trainer, "_carry_forward", "admit")
-        for cls in (torch.optim.Adam, fused_adam.FusedAdam):
+        for cls in (torch.optim.Adam, fused_adam.FusedAdam, selective_adam.SelectiveAdam):
             self._wrap(cls, "step", "optimizer")
 
         orig_forward = DeformationField.forward
@@ -289,6 +289,17 @@ VARIANTS = {
                            "main before this work", "hexplane_sampler": "auto",
                     "patches": {(trajectory, "EVALUATOR"): "torch", (fused_adam, "ENABLED"): False,
                                 (scene_flow, "DENSE_SEARCH"): True}},
+    "adam-exact": {"doc": "gaussian_adam=exact: the Gaussians' FusedAdam updates every row and column "
+                          "(torch's Adam bit for bit)", "hexplane_sampler": "auto",
+                   "overrides": {"gaussian_adam": "exact"}},
+    "adam-selective": {"doc": "gaussian_adam=selective: only the rows the step's renders see and the curve "
+                              "columns its times read (engine.scene.selective_adam)", "hexplane_sampler": "auto",
+                       "overrides": {"gaussian_adam": "selective"}},
+    "ssim-msssim": {"doc": "the D-SSIM term by pytorch_msssim (conv2d + autograd), as before the fused SSIM",
+                    "hexplane_sampler": "auto", "patches": {(fused_ssim, "ENABLED"): False}},
+    "adam-ssim-before": {"doc": "gaussian_adam=exact and pytorch_msssim's D-SSIM: the optimizer and the SSIM as "
+                                "before SelectiveAdam and the fused SSIM", "hexplane_sampler": "auto",
+                        "overrides": {"gaussian_adam": "exact"}, "patches": {(fused_ssim, "ENABLED"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

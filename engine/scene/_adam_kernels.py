@@ -68,3 +68,113 @@ def update(p, m, v, root, bc2s, eps, neg_step):
     for i in range(p.size):
         sq = root[i] if v[i] != 0 else zero
         p[i] = p[i] + (neg_step * m[i]) / (sq / bc2s + eps)
+
+
+# ---- selective (sparse) Adam: engine.scene.selective_adam ------------------------------------
+# The same per-element arithmetic as :func:`moments` / :func:`update` over the elements a step
+# selects: flat float32 arrays of ``N`` rows of ``D`` elements; within a selected row, the
+# element spans ``[start, stop)`` of ``spans`` (the whole row, or a curve's touched
+# control-point columns). Adjacent selected ranges merge into runs (consecutive visible rows
+# of a parameter updated whole: one long loop, vectorised like the dense kernels). The first
+# pass leaves, compactly in visiting order, the square roots' inputs, the new first moments
+# and whether the second moment is zero, so that torch's ``sqrt`` runs on the selected
+# elements only and the second pass touches only the parameter at its (strided) places.
+
+
+@njit(cache=True, nogil=True)
+def select_runs(g, D, visible, spans, runs):
+    """Element runs ``runs[:R]`` [R, 2] (uint64 start, length) of the rows ``r`` with
+    ``visible[r]`` or a nonzero gradient ``g`` in a span, at ``spans`` [S, 2] (int64 (start,
+    stop) within a row, ascending); adjacent ones merged. Returns (R, rows selected, elements)."""
+    n_runs = 0
+    n_rows = 0
+    n_el = 0
+    start = -1
+    end = -1
+    for r in range(visible.size):
+        base = r * D
+        take = visible[r]
+        if not take:  # a loss term that is not a render (a prior, the spike-view flow) reached it
+            for s in range(spans.shape[0]):
+                a = base + spans[s, 0]
+                for jj in range(spans[s, 1] - spans[s, 0]):
+                    if g[a + jj] != 0:
+                        take = True
+        if not take:
+            continue
+        n_rows += 1
+        for s in range(spans.shape[0]):
+            a = base + spans[s, 0]
+            length = spans[s, 1] - spans[s, 0]
+            n_el += length
+            if a != end:
+                if end >= 0:
+                    runs[n_runs, 0] = np.uint64(start)
+                    runs[n_runs, 1] = np.uint64(end - start)
+                    n_runs += 1
+                start = a
+            end = a + length
+    if end >= 0:
+        runs[n_runs, 0] = np.uint64(start)
+        runs[n_runs, 1] = np.uint64(end - start)
+        n_runs += 1
+    return n_runs, n_rows, n_el
+
+
+# The loops below index with unsigned integers (the runs' starts and lengths): numba then
+# drops its negative-index handling, and LLVM vectorises a long run like the dense kernels.
+
+
+@njit(cache=True, nogil=True)
+def selective_moments(g, m, v, runs, n_runs, w1, b2, c2, root_in, m_out, zero):
+    """:func:`moments` over ``runs[:n_runs]`` (:func:`select_runs`); writes compactly
+    ``root_in`` (``v`` with its zeros replaced by 1), ``m_out`` (the new ``m``) and ``zero``
+    (``v == 0``)."""
+    one = np.float32(1.0)
+    low = abs(w1) < np.float32(0.5)  # torch's lerp: two formulas around weight 0.5
+    w1m = w1 - one
+    k = np.uint64(0)
+    for q in range(n_runs):
+        a = runs[q, 0]
+        length = runs[q, 1]
+        if low:
+            for j in range(length):
+                i = a + j
+                o = k + j
+                gi = g[i]
+                mi = _fma32(w1, gi - m[i], m[i])
+                m[i] = mi
+                m_out[o] = mi
+                vi = _fma32(c2 * gi, gi, v[i] * b2)
+                v[i] = vi
+                zero[o] = vi == 0
+                root_in[o] = vi if vi != 0 else one
+        else:
+            for j in range(length):
+                i = a + j
+                o = k + j
+                gi = g[i]
+                mi = _fma32(w1m, gi - m[i], gi)
+                m[i] = mi
+                m_out[o] = mi
+                vi = _fma32(c2 * gi, gi, v[i] * b2)
+                v[i] = vi
+                zero[o] = vi == 0
+                root_in[o] = vi if vi != 0 else one
+        k += length
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def selective_update(p, runs, n_runs, root, m_new, zero, bc2s, eps, neg_step):
+    """:func:`update` over the runs of :func:`selective_moments`, reading its compact
+    outputs (``root``: torch's square roots of its ``root_in``)."""
+    zf = np.float32(0.0)
+    k = np.uint64(0)
+    for q in range(n_runs):
+        a = runs[q, 0]
+        length = runs[q, 1]
+        for j in range(length):
+            o = k + j
+            sq = zf if zero[o] else root[o]
+            p[a + j] = p[a + j] + (neg_step * m_new[o]) / (sq / bc2s + eps)
+        k += length

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from .fused_adam import FusedAdam
+from .selective_adam import SelectiveAdam
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -190,7 +191,12 @@ class GaussianModel(nn.Module):
                "opacity_logits": cfg.lr_opacities, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
         groups = [{"params": [getattr(self, n)], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
         groups += [{"params": [getattr(self, n)], "lr": self._extra_lr(n), "name": n} for n in self.extra_lrs]
-        self.optimizer = FusedAdam(groups, lr=0.0, eps=1e-15)
+        # FusedAdam: torch's Adam bit for bit; SelectiveAdam: only the rows the step's renders
+        # saw (and the curve columns they read) move (engine.scene.selective_adam)
+        opt = getattr(cfg, "gaussian_adam", "exact")
+        if opt not in ("exact", "selective"):
+            raise ValueError(f"unknown gaussian_adam {opt!r}; choose exact or selective")
+        self.optimizer = (SelectiveAdam if opt == "selective" else FusedAdam)(groups, lr=0.0, eps=1e-15)
         self._lr_means = (cfg.lr_means * self.extent, cfg.lr_means_final * self.extent)
 
     def update_learning_rate(self, progress: float) -> float:

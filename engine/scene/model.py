@@ -92,6 +92,7 @@ class Model4D(nn.Module):
         g.add_extra(TRAJ_MEANS, torch.zeros(n, k, 3, device=g.means.device), lr_means)
         g.add_extra(TRAJ_QUATS, torch.zeros(n, k, 4, device=g.means.device), lr_quats)
         self.trajectory = {"knots": knots}
+        _mark_curves(g)
 
     def trajectory_at(self, t: float, mask: torch.Tensor | None = None):
         """(position offsets [N,3], quaternion residuals [N,4]) at ``t``; rows where the bool
@@ -156,6 +157,9 @@ class Model4D(nn.Module):
             attrs["means"], attrs["quats"], attrs["scales"], attrs["opacities"], attrs["colors"],
             vt["viewmat"], vt["K"], vt["width"], vt["height"], backgrounds=bgs, render_depth=render_depth,
             near_plane=self.near_plane, backend=backend)
+        note = getattr(self.gaussians.optimizer, "note_visible", None)  # engine.scene.selective_adam
+        if note is not None and torch.is_grad_enabled() and meta.get("radii") is not None:
+            note(meta["radii"])
         return rgb, alpha, meta, attrs
 
     def effective_static_mask(self) -> torch.Tensor | None:
@@ -221,7 +225,15 @@ class Model4D(nn.Module):
                 raise ValueError("the model has trajectories but the Gaussians lack their parameters")
             m.trajectory = {"knots": [float(x) for x in tj["knots"]]}
             m.use_deformation = bool(state.get("use_deformation", True))
+            _mark_curves(g)
         return m
+
+
+def _mark_curves(g: GaussianModel) -> None:
+    """Tell a selective optimizer (engine.scene.selective_adam) which groups are curves."""
+    curves = getattr(g.optimizer, "curves", None)
+    if curves is not None:
+        curves.update((TRAJ_MEANS, TRAJ_QUATS))
 
 
 def _fine_windows(field) -> dict | None:

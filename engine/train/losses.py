@@ -16,6 +16,7 @@ from pytorch_msssim import ssim
 from ..scene.model import TRAJ_MEANS
 from ..scene.rigidity import knn_neighbours, rigidity_losses
 from ..scene.trajectory import inner_residual_sq
+from .fused_ssim import fused_ssim
 from .geometry_losses import geometry_loss_terms
 from .presets import TrainConfig
 
@@ -49,6 +50,9 @@ def _l1(ctx: StepContext):
 
 
 def _dssim(ctx: StepContext):
+    fused = fused_ssim(ctx.rgb, ctx.item["image"])  # the same SSIM in two numba passes (issue 13)
+    if fused is not None:
+        return 1.0 - fused
     pred = ctx.rgb.permute(0, 3, 1, 2)
     gt = ctx.item["image"].permute(0, 3, 1, 2)
     if min(pred.shape[-2:]) < 11:
