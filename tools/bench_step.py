@@ -289,6 +289,16 @@ VARIANTS = {
                            "main before this work", "hexplane_sampler": "auto",
                     "patches": {(trajectory, "EVALUATOR"): "torch", (fused_adam, "ENABLED"): False,
                                 (scene_flow, "DENSE_SEARCH"): True}},
+    "crop-on": {"doc": "spike_crop=True: the spike loss's between-frame render only over the box where the "
+                       "spike view changes (engine.train.spike_crop)", "hexplane_sampler": "auto",
+                "overrides": {"spike_crop": True}},
+    "crop-off": {"doc": "spike_crop=False: the spike loss's between-frame render over the whole spike view "
+                        "(as before engine.train.spike_crop)", "hexplane_sampler": "auto",
+                 "overrides": {"spike_crop": False}},
+    "guided-main": {"doc": "the guided step before engine.train.spike_crop: the spike loss's between-frame "
+                           "render over the whole spike view, with a depth channel nobody reads",
+                    "hexplane_sampler": "auto", "patches": {(spike_guidance, "BETWEEN_DEPTH"): True},
+                    "overrides": {"spike_crop": False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

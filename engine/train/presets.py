@@ -171,6 +171,11 @@ class TrainConfig:
     spike_skip_static: bool = True  # no between-frame renders in spike windows without change (engine.spike.change)
     fine_change_gate: bool = True  # fine feature only for Gaussians where / windows when the spike view changes
     spike_change_block: int = 4  # block size (spike pixels) of the change maps
+    # the spike loss's between-frame render only over the box where its interval's spike view changes
+    # (engine.train.spike_crop; full view when the box exceeds spike_crop_max_frac of it)
+    spike_crop: bool = False
+    spike_crop_dilate: int = 1  # change-map blocks added around the changed ones
+    spike_crop_max_frac: float = 0.8
     # along-ray prior (issue 11, engine.train.along_ray): between RGB instants the distance of the
     # Gaussians the spike loss touches from the spike camera follows a smooth curve through its
     # values at the neighbouring RGB instants (the one component the spike view cannot see)
