@@ -92,3 +92,20 @@ def test_trajectory_step_variants_switch_the_old_paths_and_restore_them():
         with bench_step.variant(name):
             assert getattr(*attr) != now[("traj-reference", "adam-torch", "nn-dense").index(name)]
     assert (trajectory.EVALUATOR, fused_adam.ENABLED, scene_flow.DENSE_SEARCH) == now
+
+
+def test_guided_main_and_crop_variants_switch_the_old_paths_and_restore_them():
+    from engine.train import spike_flow, spike_guidance
+
+    now = (spike_guidance.BETWEEN_DEPTH, spike_flow.inner_only_positions)
+    assert now[0] is False
+    with bench_step.variant("guided-main"):
+        assert spike_guidance.BETWEEN_DEPTH is True
+        assert spike_flow.inner_only_positions is bench_step._inner_only_positions_gather
+    with bench_step.variant("flow-gather"):
+        assert spike_flow.inner_only_positions is bench_step._inner_only_positions_gather
+        assert spike_guidance.BETWEEN_DEPTH is False
+    assert (spike_guidance.BETWEEN_DEPTH, spike_flow.inner_only_positions) == now
+    assert bench_step.VARIANTS["guided-main"]["overrides"] == {"spike_crop": False}
+    assert bench_step.VARIANTS["crop-on"]["overrides"] == {"spike_crop": True}
+    assert bench_step.VARIANTS["crop-off"]["overrides"] == {"spike_crop": False}

@@ -107,6 +107,42 @@ def test_loss_bends_the_curve_toward_a_known_displacement():
         assert torch.allclose(project(inner_only_positions(m, t_ref, idx), VIEWMAT, K)[0], uv_ref, atol=1e-4)
 
 
+def _inner_only_positions_gather(model, t, idx):
+    """The former form: gather the rows, detach the junctions with a mask, evaluate."""
+    from engine.scene import trajectory as traj
+
+    params = getattr(model.gaussians, TRAJ_MEANS)[idx]
+    inner = torch.ones(params.shape[1], dtype=torch.bool)
+    inner[0::3] = False
+    params = torch.where(inner[None, :, None], params, params.detach())
+    return model.gaussians.means.detach()[idx] + traj.evaluate(params, model.trajectory["knots"], t)
+
+
+def test_inner_only_positions_equal_the_gather_form_bit_for_bit():
+    """Value and gradient (into the inner columns of the subset's rows only) as the gather +
+    mask + evaluate form, at and between the knots, for a random distinct subset."""
+    m = _traj_model()
+    params = getattr(m.gaussians, TRAJ_MEANS)
+    with torch.no_grad():
+        params.normal_(0.0, 0.01, generator=torch.Generator().manual_seed(5))
+    n = m.gaussians.num_gaussians
+    idx = torch.randperm(n, generator=torch.Generator().manual_seed(6))[: max(1, n // 2)]
+    w = torch.randn(idx.numel(), 3, generator=torch.Generator().manual_seed(7))
+    knots = m.trajectory["knots"]
+    for t in (knots[0], 0.5 * (knots[0] + knots[1]), knots[1], 0.3 * knots[1] + 0.7 * knots[-1], knots[-1]):
+        out = []
+        for fn in (_inner_only_positions_gather, inner_only_positions):
+            params.grad = None
+            x = fn(m, t, idx)
+            (x * w).sum().backward()
+            out.append((x.detach(), params.grad.clone()))
+        assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
+        rows = torch.zeros(n, dtype=torch.bool)
+        rows[idx] = True
+        assert torch.all(out[1][1][~rows] == 0) and torch.all(out[1][1][:, 0::3] == 0)
+        assert m.gaussians.means.grad is None
+
+
 def test_loss_gradient_is_in_the_image_plane():
     """The projection's gradient has no component along the viewing ray."""
     m = _traj_model()

@@ -45,7 +45,7 @@ from engine.scene import fused_adam, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import fused_ssim, interpolation, scene_flow, spike_guidance
+from engine.train import fused_ssim, interpolation, scene_flow, spike_flow, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -252,6 +252,15 @@ def _norm_flow_length(f):
     return f.norm(dim=1, keepdim=True)
 
 
+def _inner_only_positions_gather(model, t, idx):
+    """spike_flow.inner_only_positions as before its column backward (gather + mask + evaluate)."""
+    params = getattr(model.gaussians, scene_model.TRAJ_MEANS)[idx]
+    inner = torch.ones(params.shape[1], dtype=torch.bool, device=params.device)
+    inner[0::3] = False
+    params = torch.where(inner[None, :, None], params, params.detach())
+    return model.gaussians.means.detach()[idx] + trajectory.evaluate(params, model.trajectory["knots"], t)
+
+
 _BEFORE_GUIDED = {  # the spike branch as before EncodedWindows and the cached occlusion maps
     (interpolation, "_flow_length"): _norm_flow_length,
     (spike_guidance, "flow_consistency"): lambda *flows: None,  # None: flow_interpolate recomputes them
@@ -300,6 +309,21 @@ VARIANTS = {
     "adam-ssim-before": {"doc": "gaussian_adam=exact and pytorch_msssim's D-SSIM: the optimizer and the SSIM as "
                                 "before SelectiveAdam and the fused SSIM", "hexplane_sampler": "auto",
                         "overrides": {"gaussian_adam": "exact"}, "patches": {(fused_ssim, "ENABLED"): False}},
+    "crop-on": {"doc": "spike_crop=True: the spike loss's between-frame render only over the box where the "
+                       "spike view changes (engine.train.spike_crop)", "hexplane_sampler": "auto",
+                "overrides": {"spike_crop": True}},
+    "crop-off": {"doc": "spike_crop=False: the spike loss's between-frame render over the whole spike view "
+                        "(as before engine.train.spike_crop)", "hexplane_sampler": "auto",
+                 "overrides": {"spike_crop": False}},
+    "guided-main": {"doc": "the guided step before this round: the spike loss's between-frame render over the "
+                           "whole spike view with a depth channel nobody reads, the flow term's subset positions "
+                           "by gather + mask", "hexplane_sampler": "auto",
+                    "patches": {(spike_guidance, "BETWEEN_DEPTH"): True,
+                                (spike_flow, "inner_only_positions"): _inner_only_positions_gather},
+                    "overrides": {"spike_crop": False}},
+    "flow-gather": {"doc": "the flow term's subset positions by gather + mask + evaluate, as before their column "
+                           "backward", "hexplane_sampler": "auto",
+                    "patches": {(spike_flow, "inner_only_positions"): _inner_only_positions_gather}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

@@ -140,16 +140,50 @@ def lift(uv: torch.Tensor, z: torch.Tensor, viewmat: torch.Tensor, K: torch.Tens
     return (cam - viewmat[:3, 3]) @ viewmat[:3, :3]
 
 
+class _InnerAt(torch.autograd.Function):
+    """``base + sum_j w_j params[idx, c_j]`` [M, C] (the curves of rows ``idx`` at one instant,
+    ``traj.segment_weights``); the backward writes ``w_j * grad`` into rows ``idx`` of the inner
+    columns (``c % 3 != 0``) of one zero [N, K, C] gradient: no [M, K, C] gather, mask or
+    scatter (issue 13; the same numbers as the gather + ``torch.where`` + ``traj.evaluate``
+    form, bit for bit, ``tests/test_spike_flow.py``)."""
+
+    @staticmethod
+    def forward(ctx, params, base, idx, cols, weights):
+        out = None
+        for c, w in zip(cols, weights):
+            term = params[idx, c] * w
+            out = term if out is None else out.add_(term)
+        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
+        ctx.save_for_backward(idx)
+        return base + out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        (idx,) = ctx.saved_tensors
+        g = grad.new_zeros(ctx.shape)
+        for c, w in zip(ctx.cols, ctx.weights):
+            if c % 3:
+                g[:, c].index_add_(0, idx, torch.mul(grad, w))
+        return g, None, None, None, None
+
+
 def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:
-    """Positions [M, 3] of Gaussians ``idx`` at ``t`` whose gradient reaches only the curves'
-    inner control points (canonical means and junctions detached). Static rows are not
-    passed here by the caller."""
+    """Positions [M, 3] of Gaussians ``idx`` (distinct) at ``t`` whose gradient reaches only
+    the curves' inner control points (canonical means and junctions detached). Static rows
+    are not passed here by the caller."""
     g = model.gaussians
-    params = getattr(g, TRAJ_MEANS)[idx]
-    inner = torch.ones(params.shape[1], dtype=torch.bool, device=params.device)
-    inner[0::3] = False
-    params = torch.where(inner[None, :, None], params, params.detach())
-    return g.means.detach()[idx] + traj.evaluate(params, model.trajectory["knots"], t)
+    params = getattr(g, TRAJ_MEANS)
+    knots = model.trajectory["knots"]
+    if traj.EVALUATOR == "torch":  # the reference path (bench-step's traj-reference variant)
+        sub = params[idx]
+        inner = torch.ones(sub.shape[1], dtype=torch.bool, device=sub.device)
+        inner[0::3] = False
+        sub = torch.where(inner[None, :, None], sub, sub.detach())
+        return g.means.detach()[idx] + traj.evaluate(sub, knots, t)
+    traj._check(params, traj._knots(knots))
+    cols, weights = zip(*traj.segment_weights(knots, t))
+    return _InnerAt.apply(params, g.means.detach()[idx], idx, cols, weights)
 
 
 # ------------------------------------------------------------------------------ trainer term

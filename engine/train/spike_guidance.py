@@ -36,8 +36,15 @@ from .instants import InstantSampler
 from .interpolation import avg_pool_blocks, block_colour_loss, flow_consistency, flow_interpolate, linear_blend
 from .losses import LossTerm
 from .presets import block_weight
+from .spike_crop import crop_box, crop_fraction, crop_view
 
 __all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info", "spike_view_guidance"]
+
+# No term reads the between-frame render's depth: without it the rasterizer composites 3
+# feature channels instead of 4, with the same colours and gradients bit for bit (issue 13;
+# tests/test_spike_crop.py). tools/bench-step's ``guided-main`` variant sets it back.
+BETWEEN_DEPTH = False
+
 
 def spike_stream_info(capture):
     """The first spike stream co-located with a training RGB camera (or None)."""
@@ -331,11 +338,33 @@ class SpikeGuidance:
         item = ctx.trainer.items[self.by_cam[cam][0]]
         vt = scaled_view(item, float(self.cfg.between_scale))
         vt["time"] = inst.time
-        rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time,
+        scale = vt["width"] / item["width"]
+        box = self.spike_box(vt, inst.time) if cam == self.colocated else None
+        if box is not None:  # render pixels per sensor pixel: a whole number (spike_crop.crop_box)
+            r = vt["width"] // self.sensor.width
+            vt = crop_view(vt, tuple(v * r for v in box))
+        rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
                                                            motion_only=bool(self.cfg.between_motion_only))
-        out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": vt["width"] / item["width"], "meta": meta}
+        out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta, "box": box}
         ctx.__dict__["_between"] = out
         return out
+
+    def spike_box(self, vt: dict, t: float) -> tuple[int, int, int, int] | None:
+        """The box of sensor pixels (x0, y0, x1, y1) that a between-frame render at the spike
+        camera at ``t`` is cropped to (engine.train.spike_crop), or None for the full view:
+        ``spike_crop`` off, no spike loss, or the block colour loss on (it pools the whole view)."""
+        if not self.cfg.spike_crop or self.sensor is None or block_weight(self.cfg) > 0:
+            return None
+        cache = self.window_cache()
+        if cache is None:
+            return None
+        key = (bracket(cache.rgb_times, float(t))[0], int(vt["width"]), int(vt["height"]))
+        boxes = self.__dict__.setdefault("_boxes", {})
+        if key not in boxes:
+            change = cache.change(int(self.cfg.spike_change_block))
+            boxes[key] = crop_box(change, key[0], (int(self.sensor.width), int(self.sensor.height)), key[1:],
+                                  dilate=int(self.cfg.spike_crop_dilate), max_frac=float(self.cfg.spike_crop_max_frac))
+        return boxes[key]
 
     def colocated_between(self, ctx) -> dict | None:
         """This step's between-frame render (:meth:`between`) when it was made at the spike
@@ -363,12 +392,20 @@ def _spike_term(guid: SpikeGuidance):
         if n == 0:
             return None
         img = b["rgb"][0].clamp(0, 1)
-        scale = max(guid.sensor.scale, 1e-6)
+        # a cropped render (spike_crop): the loss over the box's pixels divided by the whole
+        # view's, so each of them gets the full-view loss's gradient
+        box = b.get("box")
+        share = crop_fraction(box, (guid.sensor.width, guid.sensor.height))
+        scale = max(guid.sensor.scale, 1e-6) / share
+        if box is not None:
+            x0, y0, x1, y1 = box
+            counts, frames = counts[y0:y1, x0:x1], frames[:, y0:y1, x0:x1]
         if guid.cfg.spike_loss_mode == "if":
-            spikes = guid.renderer.render_spikes(img, n)
-            return cumulative_spike_loss(spikes, torch.as_tensor(frames, device=img.device)) / scale
-        pred = guid.renderer.render_counts(img, n)
-        obs = torch.as_tensor(counts, device=img.device)
+            spikes = guid.renderer.render_spikes(img, n, box=box)
+            obs_spikes = torch.as_tensor(np.ascontiguousarray(frames), device=img.device)
+            return cumulative_spike_loss(spikes, obs_spikes) / scale
+        pred = guid.renderer.render_counts(img, n, box=box)
+        obs = torch.as_tensor(np.ascontiguousarray(counts), device=img.device)
         return spike_count_loss(pred, obs, n) / scale
     return fn
 
