@@ -7,10 +7,10 @@ import types
 import numpy as np
 import pytest
 import torch
+from train_util import frame_items
 
 from engine.io.capture import load_capture
 from engine.raster import rasterization
-from engine.scene.model import view_tensors
 from engine.spike.change import SpikeChange
 from engine.spike.features import bracket
 from engine.spike.render import SensorModel, sensor_light
@@ -170,12 +170,7 @@ def cap(demo_capture):
 
 
 def _trainer(cap, **cfg):
-    items = []
-    for i, f in enumerate(cap.frames):
-        vt = view_tensors(cap.view(f), "cpu")
-        vt["image"] = torch.from_numpy(f.load_rgb())[None]
-        vt["index"], vt["camera"] = i, f.camera
-        items.append(vt)
+    items = frame_items(cap)
     conf = TrainConfig().replace(**{"between_colocated_p": 1.0, **cfg})
     return types.SimpleNamespace(capture=cap, cfg=conf, items=items, seed=0, model=_TextureModel(), deform_opt=None)
 

@@ -6,6 +6,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from train_util import frame_items
 
 from engine.io.capture import load_capture
 from engine.scene.fine_deformation import SpikeFineEncoder
@@ -36,12 +37,7 @@ class _FakeModel(torch.nn.Module):
 
 
 def _fake_trainer(cap, **cfg):
-    items = []
-    for i, f in enumerate(cap.frames):
-        vt = view_tensors(cap.view(f), "cpu")
-        vt["image"] = torch.from_numpy(f.load_rgb())[None]
-        vt["index"], vt["camera"] = i, f.camera
-        items.append(vt)
+    items = frame_items(cap)
     conf = TrainConfig().replace(**{"block_interp": "linear", "motion": "hexplane", **cfg})  # block loss on
     return types.SimpleNamespace(capture=cap, cfg=conf, items=items, seed=0, model=_FakeModel(), deform_opt=None)
 

@@ -31,3 +31,19 @@ def trajectory_model(knots, n: int, seed: int = 0, spread: float = 0.1, centre=(
     m.add_trajectories(knots, 1e-3, 1e-3)
     m.use_deformation = True
     return m
+
+
+def frame_items(cap) -> list[dict]:
+    """A trainer's per-frame view tensors of every frame of ``cap`` on the CPU: image [1,H,W,3],
+    index and camera (for tests that drive the spike guidance without a Trainer)."""
+    import torch
+
+    from engine.scene.model import view_tensors
+
+    items = []
+    for i, f in enumerate(cap.frames):
+        vt = view_tensors(cap.view(f), "cpu")
+        vt["image"] = torch.from_numpy(f.load_rgb())[None]
+        vt["index"], vt["camera"] = i, f.camera
+        items.append(vt)
+    return items

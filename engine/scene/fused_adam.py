@@ -94,6 +94,21 @@ def _self_check() -> bool:
                and torch.equal(o_ref.state[a]["exp_avg_sq"], o_fus.state[b]["exp_avg_sq"]) for a, b in zip(ref, fus))
 
 
+def adam_moments(state: dict, p: torch.Tensor, who: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """``p``'s Adam moments (exp_avg, exp_avg_sq), created on first use as
+    torch.optim.Adam._init_group does, with the step count advanced; they must be contiguous
+    float32 (the numba passes read them flat). Shared by FusedAdam and SelectiveAdam."""
+    if len(state) == 0:
+        state["step"] = torch.tensor(0.0, dtype=torch.float32)
+        state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+    m, v = state["exp_avg"], state["exp_avg_sq"]
+    if not (m.is_contiguous() and v.is_contiguous() and m.dtype == v.dtype == torch.float32):
+        raise RuntimeError(f"{who}: moments must be contiguous float32 like their parameter")
+    state["step"] += 1
+    return m, v
+
+
 class FusedAdam(torch.optim.Adam):
     """``torch.optim.Adam`` with an exact fused CPU step (module docstring)."""
 
@@ -130,14 +145,7 @@ class FusedAdam(torch.optim.Adam):
                 if p.grad is None:
                     continue
                 state = self.state[p]
-                if len(state) == 0:  # as torch.optim.Adam._init_group
-                    state["step"] = torch.tensor(0.0, dtype=torch.float32)
-                    state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                    state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                m, v = state["exp_avg"], state["exp_avg_sq"]
-                if not (m.is_contiguous() and v.is_contiguous() and m.dtype == v.dtype == torch.float32):
-                    raise RuntimeError("FusedAdam: moments must be contiguous float32 like their parameter")
-                state["step"] += 1
+                m, v = adam_moments(state, p, "FusedAdam")
                 _fused_update(p, p.grad, m, v, float(state["step"].item()), float(g["lr"]), float(beta1),
                               float(beta2), float(g["eps"]), scratch)
 

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from . import fused_adam, trajectory
-from .fused_adam import KERNELS, FusedAdam, exact
+from .fused_adam import KERNELS, FusedAdam, adam_moments, exact
 
 
 def _spans(cols: list[int] | None, shape: tuple) -> np.ndarray:
@@ -119,14 +119,7 @@ class SelectiveAdam(FusedAdam):
                 if p.grad is None:
                     continue
                 state = self.state[p]
-                if len(state) == 0:  # as torch.optim.Adam._init_group
-                    state["step"] = torch.tensor(0.0, dtype=torch.float32)
-                    state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                    state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                m, v = state["exp_avg"], state["exp_avg_sq"]
-                if not (m.is_contiguous() and v.is_contiguous() and m.dtype == v.dtype == torch.float32):
-                    raise RuntimeError("SelectiveAdam: moments must be contiguous float32 like their parameter")
-                state["step"] += 1
+                m, v = adam_moments(state, p, "SelectiveAdam")
                 step, lr = float(state["step"].item()), float(g["lr"])
                 cols = None
                 if g.get("name") in self.curves and p.dim() == 3:
