@@ -288,3 +288,24 @@ def test_surface_is_found_and_reused_for_a_few_steps():
     assert len(renders) == 2
     sup.cached_surface(m, 0.2, step=111)  # another RGB instant: its own set
     assert len(renders) == 3
+
+
+@pytest.mark.slow
+def test_budget_probe_neither_fits_nor_takes_the_runs_fits(demo_capture, monkeypatch):
+    """``measure_step_seconds`` runs guided steps on a copy that shares this term: it must not
+    fit (a fit costs ~1 s and made a 120 s run plan 186 steps) nor leave intervals marked as
+    fitted (the real run then never fitted them: curves 3x off in the image plane)."""
+    from engine.io.capture import load_capture
+    from engine.train.budget import measure_step_seconds
+    from engine.train.spike_flow import SpikeFlowSupervision
+    from engine.train.trainer import Trainer
+
+    tr = Trainer(load_capture(demo_capture), get_preset("fast", _TINY), device="cpu")
+    tr.init_model()
+    calls = []
+    monkeypatch.setattr(SpikeFlowSupervision, "fit_interval", lambda self, *a, **k: calls.append(a) or {})
+    tr.spike_flow.fitted[0] = {"fitted": 1}  # a real fit from before stays
+    measure_step_seconds(tr, n_static=1, n_deform=3)
+    assert calls == [] and tr.spike_flow.fitted == {0: {"fitted": 1}}
+    term_values(tr, "spike_flow", steps=8)  # the real run still fits what the probe saw
+    assert calls
