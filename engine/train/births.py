@@ -20,10 +20,9 @@ import math
 import numpy as np
 import torch
 
-from ..geometry.depth_priors import stereo_depth_priors
 from ..scene.gaussians import inverse_sigmoid, rgb_to_sh
 from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, view_tensors
-from .scene_flow import backproject_pixels
+from .scene_flow import backproject_pixels, instant_depth_priors
 
 __all__ = ["ALWAYS_LOG_SCALE", "birth_candidates", "ensure_temporal_opacity", "spawn_at_instant"]
 
@@ -61,10 +60,8 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     ``births``)."""
     cfg, model = trainer.cfg, trainer.model
     g = model.gaussians
-    if getattr(trainer, "_stereo_priors", None) is None:
-        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames, fusion_cache=trainer.fusion_cache)
-    pri = trainer._stereo_priors
-    knots = model.trajectory["knots"] if model.trajectory is not None else trainer.frame_times
+    pri = instant_depth_priors(trainer, frames)
+    knots = model.trajectory["knots"]  # births follow the carry, which only curves have
     dt = float(np.median(np.diff(knots))) if len(knots) > 1 else 1.0 / 30.0
     rng = np.random.default_rng(int(trainer.seed) * 7919 + int(round(t * 1e6)))
     pts, cols, sizes = [], [], []

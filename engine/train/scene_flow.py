@@ -195,14 +195,21 @@ def propagate_to_hidden_dense(positions: np.ndarray, delta: np.ndarray, decided:
     return out, taken
 
 
+def instant_depth_priors(trainer, frames) -> dict:
+    """The per-instant stereo depth of the train ``frames`` ({id(frame): (depth, ok)},
+    :func:`stereo_depth_priors`), computed once per trainer and shared by the carry and the
+    births (engine.train.births)."""
+    if getattr(trainer, "_stereo_priors", None) is None:
+        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames, fusion_cache=trainer.fusion_cache)
+    return trainer._stereo_priors
+
+
 def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
     """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i`` in
     a train camera along that camera's optical flow, lifted by the stereo depth at
     ``knots[j]`` (``frames``: the train RGB frames); hidden Gaussians follow their nearest decided neighbour
     (``traj_carry_hidden`` x extent); later knots hold the result. Returns counts (run.json)."""
-    if getattr(trainer, "_stereo_priors", None) is None:
-        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames, fusion_cache=trainer.fusion_cache)
-    pri = trainer._stereo_priors
+    pri = instant_depth_priors(trainer, frames)
     g = trainer.model.gaussians
     with torch.no_grad():
         pos_i = trainer.model.attributes(knots[i])["means"].detach().cpu().numpy()

@@ -348,13 +348,13 @@ class Trainer:
         mode = "velocity" if self.cfg.traj_carry == "flow" else self.cfg.traj_carry
         extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=mode)
         extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")
+        frames = train_frames(self.capture)
         if self.cfg.traj_carry == "flow" and li + 1 < len(knots):
             from .scene_flow import carry_trajectories
-
-            self.carry_info.append(carry_trajectories(self, train_frames(self.capture), knots, li, li + 1))
+            self.carry_info.append(carry_trajectories(self, frames, knots, li, li + 1))
         if self.cfg.birth_error > 0 and li + 1 < len(knots):
             from .births import spawn_at_instant
-            spawn_at_instant(self, train_frames(self.capture), knots[li + 1])  # records in self.birth_info
+            spawn_at_instant(self, frames, knots[li + 1])  # records in self.birth_info
 
     def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
         """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
