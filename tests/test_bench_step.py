@@ -109,3 +109,14 @@ def test_guided_main_and_crop_variants_switch_the_old_paths_and_restore_them():
     assert bench_step.VARIANTS["guided-main"]["overrides"] == {"spike_crop": False}
     assert bench_step.VARIANTS["crop-on"]["overrides"] == {"spike_crop": True}
     assert bench_step.VARIANTS["crop-off"]["overrides"] == {"spike_crop": False}
+
+
+def test_step_before_variant_switches_the_old_paths_and_restores_them():
+    from engine.scene import trajectory
+    from engine.train import interpolation, scene_flow
+
+    now = (interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE)
+    assert now == (True, True, True)
+    with bench_step.variant("step-before"):
+        assert (interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE) == (False, False, False)
+    assert (interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE) == now

@@ -155,3 +155,23 @@ def test_residual_square_with_zero_residuals_adds_no_gradient_tensor():
          / 0.37 ** 2).backward()
         assert torch.equal(a.grad, b.grad)
         assert (a.grad[7, 4, 1] != 0) == (tiny != 0.0)
+
+
+def test_finite_check_of_the_residual_term_is_torchs():
+    """The residual term's backward tests its incoming gradient in one numba pass
+    (trajectory._all_finite): the same answer as torch.isfinite(...).all(), and an inf
+    gradient on all-zero residuals still gives torch's NaN gradient (inf * 0)."""
+    from engine.scene import trajectory
+
+    for x in (torch.zeros(5, 6, 2), torch.randn(7, 3, 2), torch.randn(4, 2, 2, dtype=torch.float64)):
+        for bad in (None, float("inf"), float("-inf"), float("nan")):
+            y = x.clone()
+            if bad is not None:
+                y.view(-1)[-1] = bad
+            assert trajectory._all_finite(y) == bool(torch.isfinite(y).all())
+    knots = KNOT_SETS["seven"]
+    p = torch.zeros(4, num_controls(len(knots)), 3, requires_grad=True)
+    q = p.detach().clone().requires_grad_(True)
+    (inner_residual_sq(p) * float("inf")).sum().backward()
+    ((inner_residuals(q) ** 2).sum(-1) * float("inf")).sum().backward()
+    torch.testing.assert_close(p.grad, q.grad, rtol=0, atol=0, equal_nan=True)

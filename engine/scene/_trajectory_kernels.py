@@ -8,6 +8,7 @@ autograd backward ``grad * (2 * d)``; tests compare bit for bit.
 """
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 from ..numba_cache import install_cache_locator
@@ -53,3 +54,14 @@ def residual_sq_backward(params, grad, out):
                 for c in range(C):
                     x = params[r, 3 * i + 1 + j, c]
                     out[r, 3 * i + 1 + j, c] = gr * (x + x)  # x + x: 2 x exactly, in x's dtype
+
+
+@njit(cache=True, nogil=True)
+def all_finite(x):
+    """Every entry of the contiguous array ``x`` finite (``torch.isfinite(x).all()`` in one
+    pass with no bool temporary: ~0.8 ms of an RGB step at 26k Gaussians, measured)."""
+    f = x.reshape(-1)
+    ok = True
+    for i in range(f.size):
+        ok &= np.isfinite(f[i])
+    return ok
