@@ -115,8 +115,11 @@ def test_step_before_variant_switches_the_old_paths_and_restores_them():
     from engine.scene import trajectory
     from engine.train import interpolation, scene_flow
 
-    now = (interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE)
-    assert now == (True, True, True)
+    def state():
+        return interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE, trajectory.FUSED_CURVES
+
+    now = state()
+    assert now == (True, True, True, True)
     with bench_step.variant("step-before"):
-        assert (interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE) == (False, False, False)
-    assert (interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE) == now
+        assert state() == (False, False, False, False)
+    assert state() == now
