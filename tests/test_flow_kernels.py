@@ -116,3 +116,13 @@ def test_lk_flow_on_the_demo_capture_is_the_torch_path(torch_paths):
     fused = interp.lk_flow(a, b)
     torch_paths(True)
     assert torch.equal(fused, interp.lk_flow(a, b))
+
+
+def test_bench_kernels_reports_identical_results(demo_capture, capsys):
+    from argparse import Namespace
+
+    from tools import bench_kernels
+
+    assert bench_kernels.main(Namespace(capture=str(demo_capture), repeats=1, pairs=1, gaussians=300)) == 0
+    out = capsys.readouterr().out
+    assert out.count("identical: True") == 5 and "identical: False" not in out
