@@ -162,7 +162,7 @@ def _all_finite(x: torch.Tensor) -> bool:
 
 
 # False: the residual term's backward tests its incoming gradient with torch.isfinite (bench-step's
-# "admit-before" variant, i.e. the step before this round, switches it)
+# "step-before" variant switches it)
 FUSED_FINITE = True
 
 

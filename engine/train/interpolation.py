@@ -21,9 +21,9 @@ import torch.nn.functional as F
 
 from ..numba_cache import LazyKernels
 
-KERNELS = LazyKernels(__package__, "_flow_kernels")  # the box filter of lk_flow (exact, 4x faster)
+KERNELS = LazyKernels(__package__, "_flow_kernels")  # lk_flow's box filter, median, warp (torch's numbers)
 # False: the Lucas-Kanade flow's box filter, median and warp run in torch, as before their
-# numba kernels (bench-step's "admit-before" variant switches it)
+# numba kernels (bench-step's "step-before" variant switches it)
 FUSED_BOX = True
 
 __all__ = ["linear_blend", "lk_flow", "warp", "flow_consistency", "flow_interpolate", "interpolate",
@@ -118,7 +118,7 @@ def _grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def _box(x: torch.Tensor, win: int) -> torch.Tensor:
     """Box mean over ``win x win`` (odd) with replicated borders, [B, C, H, W] -> same shape.
     On CPU float32 by :func:`engine.train._flow_kernels.box_replicate`: the same numbers
-    as the torch pooling below, bit for bit (tests/test_interpolation.py)."""
+    as the torch pooling below, bit for bit (tests/test_flow_kernels.py)."""
     if (FUSED_BOX and win % 2 == 1 and x.device.type == "cpu" and x.dtype == torch.float32
             and x.dim() == 4 and not x.requires_grad and KERNELS.load() is not None):
         x = x.contiguous()

@@ -205,7 +205,7 @@ def instant_depth_priors(trainer, frames) -> dict:
 
 
 # False: the carry and the births read the frames from disk at each admission (bench-step's
-# "admit-before" variant)
+# "step-before" variant)
 ITEM_IMAGES = True
 
 
