@@ -109,3 +109,17 @@ def test_guided_main_and_crop_variants_switch_the_old_paths_and_restore_them():
     assert bench_step.VARIANTS["guided-main"]["overrides"] == {"spike_crop": False}
     assert bench_step.VARIANTS["crop-on"]["overrides"] == {"spike_crop": True}
     assert bench_step.VARIANTS["crop-off"]["overrides"] == {"spike_crop": False}
+
+
+def test_step_before_variant_switches_the_old_paths_and_restores_them():
+    from engine.scene import trajectory
+    from engine.train import interpolation, scene_flow
+
+    def state():
+        return interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE, trajectory.FUSED_CURVES
+
+    now = state()
+    assert now == (True, True, True, True)
+    with bench_step.variant("step-before"):
+        assert state() == (False, False, False, False)
+    assert state() == now

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w, project_points
 from engine.train.scene_flow import backproject_pixels, carry_by_flow, image_flow
@@ -96,3 +97,23 @@ def test_image_flow_rejects_an_unknown_method():
     a = np.zeros((8, 8, 3), np.float32)
     with pytest.raises(ValueError, match="unknown optical flow method 'rift'"):
         image_flow(a, a, "rift")
+
+
+def test_frame_image_is_the_trainers_copy_of_the_file(demo_capture):
+    """The carry and the births read a train frame from trainer.items (loaded once per run)
+    instead of the disk at each admission: the same numbers; a frame the trainer does not
+    hold (e.g. held back by early stopping) still comes from the disk."""
+    from types import SimpleNamespace
+
+    from engine.io.capture import load_capture
+    from engine.train import scene_flow
+    from engine.train.trainer import train_frames
+
+    frames = train_frames(load_capture(demo_capture))
+    held, other = frames[0], frames[1]
+    disk = np.asarray(held.load_rgb(), np.float32)[..., :3]
+    item = {"camera": held.camera, "time": float(held.time), "image": torch.from_numpy(disk.copy())[None]}
+    tr = SimpleNamespace(items=[item])
+    got = scene_flow.frame_image(tr, held)
+    assert np.shares_memory(got, item["image"].numpy()) and np.array_equal(got, disk)
+    assert np.array_equal(scene_flow.frame_image(tr, other), np.asarray(other.load_rgb(), np.float32)[..., :3])

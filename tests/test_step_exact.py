@@ -51,3 +51,33 @@ def test_rgb_training_is_bit_for_bit_the_reference(capture, monkeypatch):
         for name in a.param_names:
             assert torch.equal(getattr(a, name), getattr(b, name)), (step, name)
     assert trainers[1].model.trajectory is not None
+
+
+@pytest.mark.slow  # two demo trainers, ~1 min on the loaded 2-core machine
+@pytest.mark.parametrize("rgb_only", [True, False])
+def test_default_training_is_bit_for_bit_before_the_flow_and_curve_kernels(rgb_only, demo_capture):
+    """The fast preset's own schedule on the demo (flow carry and births at the admitted
+    instants; with the spike branch, curves between knots): the engine as it is and
+    bench-step's ``step-before`` variant (torch's Lucas-Kanade flow, frames from disk, torch
+    curve column ops) keep the same parameters after every step."""
+    from engine.train.budget import warm_up_runtime
+    from tools.bench_step import variant
+
+    warm_up_runtime("cpu")
+    cap = load_capture(demo_capture)
+    steps = 40
+    trainers = {}
+    for v in ("step-before", "current"):
+        with variant(v):
+            tr = Trainer(cap, get_preset("fast", {"iterations": steps}), device="cpu", rgb_only=rgb_only)
+            tr.init_model()
+        trainers[v] = tr
+    for step in range(steps):
+        for v, tr in trainers.items():
+            with variant(v):
+                tr.step(step)
+        a, b = (tr.model.gaussians for tr in trainers.values())
+        assert a.num_gaussians == b.num_gaussians
+        for name in a.param_names:
+            assert torch.equal(getattr(a, name), getattr(b, name)), (step, name)
+    assert trainers["current"].carry_info and trainers["current"].birth_info  # admissions ran the flow

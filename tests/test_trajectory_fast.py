@@ -155,3 +155,48 @@ def test_residual_square_with_zero_residuals_adds_no_gradient_tensor():
          / 0.37 ** 2).backward()
         assert torch.equal(a.grad, b.grad)
         assert (a.grad[7, 4, 1] != 0) == (tiny != 0.0)
+
+
+def test_finite_check_of_the_residual_term_is_torchs():
+    """The residual term's backward tests its incoming gradient in one numba pass
+    (trajectory._all_finite): the same answer as torch.isfinite(...).all(), and an inf
+    gradient on all-zero residuals still gives torch's NaN gradient (inf * 0)."""
+    from engine.scene import trajectory
+
+    for x in (torch.zeros(5, 6, 2), torch.randn(7, 3, 2), torch.randn(4, 2, 2, dtype=torch.float64)):
+        for bad in (None, float("inf"), float("-inf"), float("nan")):
+            y = x.clone()
+            if bad is not None:
+                y.view(-1)[-1] = bad
+            assert trajectory._all_finite(y) == bool(torch.isfinite(y).all())
+    knots = KNOT_SETS["seven"]
+    p = torch.zeros(4, num_controls(len(knots)), 3, requires_grad=True)
+    q = p.detach().clone().requires_grad_(True)
+    (inner_residual_sq(p) * float("inf")).sum().backward()
+    ((inner_residuals(q) ** 2).sum(-1) * float("inf")).sum().backward()
+    torch.testing.assert_close(p.grad, q.grad, rtol=0, atol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize("c,dtype", [(3, torch.float32), (4, torch.float32), (3, torch.float64)])
+def test_curve_kernels_are_the_column_ops_bit_for_bit(c, dtype, monkeypatch):
+    """_CurveAt's numba forward / backward (trajectory.FUSED_CURVES) against its torch column
+    ops: values and gradients equal at knots, between them and clamped outside."""
+    from engine.scene import trajectory
+
+    knots = KNOT_SETS["seven"]
+    g = torch.Generator().manual_seed(c)
+    p0 = torch.randn(300, num_controls(len(knots)), c, generator=g, dtype=dtype)
+    p0 *= 10.0 ** torch.randint(-4, 4, p0.shape, generator=g).to(dtype)
+    w = torch.randn(300, c, generator=g, dtype=dtype)
+    for t in (knots[0], knots[3], 0.5 * (knots[1] + knots[2]), knots[4] + 1e-4, knots[-1], knots[-1] + 1.0, -1.0):
+        got = []
+        for fused in (False, True):
+            monkeypatch.setattr(trajectory, "FUSED_CURVES", fused)
+            p = p0.clone().requires_grad_(True)
+            out = evaluate(p, knots, t)
+            (out * w).sum().backward()
+            got.append((out.detach(), p.grad))
+        assert torch.equal(got[0][0], got[1][0]) and torch.equal(got[0][1], got[1][1]), t
+    # a non-contiguous tensor keeps the torch path (same numbers)
+    q = p0.transpose(0, 1).contiguous().transpose(0, 1)
+    assert not q.is_contiguous() and torch.equal(evaluate(q, knots, 0.05), evaluate(p0, knots, 0.05))

@@ -16,6 +16,7 @@ COMMANDS = {
     "ablate": "ablate",
     "bench-raster": "bench_raster",
     "bench-step": "bench_step",
+    "bench-kernels": "bench_kernels",
     "bench-decode": "bench_decode",
     "import-graph": "import_graph",
     "compact-steps": "compact_steps",

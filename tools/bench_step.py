@@ -324,6 +324,12 @@ VARIANTS = {
     "flow-gather": {"doc": "the flow term's subset positions by gather + mask + evaluate, as before their column "
                            "backward", "hexplane_sampler": "auto",
                     "patches": {(spike_flow, "inner_only_positions"): _inner_only_positions_gather}},
+    "step-before": {"doc": "the RGB step before this round: the admissions' Lucas-Kanade flow in torch (box filter, "
+                           "median, warp), frames re-read from disk at each admission, the residual term's "
+                           "finiteness test by torch.isfinite, the curves at an instant by torch column ops",
+                    "hexplane_sampler": "auto",
+                    "patches": {(interpolation, "FUSED_BOX"): False, (scene_flow, "ITEM_IMAGES"): False,
+                                (trajectory, "FUSED_FINITE"): False, (trajectory, "FUSED_CURVES"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

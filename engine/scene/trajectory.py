@@ -141,7 +141,7 @@ class _ResidualSq(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         (params,) = ctx.saved_tensors
-        if not ctx.nonzero and bool(torch.isfinite(grad).all()):
+        if not ctx.nonzero and _all_finite(grad):
             # every residual is 0 (RGB-only training keeps them there): the gradient,
             # grad * (2 * 0), is all zeros, and None says so without a full tensor that
             # autograd would then add to the curves' gradient (x + 0 == x: same numbers)
@@ -151,6 +151,19 @@ class _ResidualSq(torch.autograd.Function):
         # what autograd computes for ``d ** 2`` (pow's backward: grad * (2 * d)), bit for bit
         KERNELS.module.residual_sq_backward(p, grad.detach().to(params.dtype).numpy(), out)
         return torch.from_numpy(out)
+
+
+def _all_finite(x: torch.Tensor) -> bool:
+    """``bool(torch.isfinite(x).all())``; one numba pass when ``x`` is contiguous on the CPU."""
+    if (FUSED_FINITE and x.device.type == "cpu" and x.is_contiguous() and x.dtype in (torch.float32, torch.float64)
+            and KERNELS.load() is not None):
+        return bool(KERNELS.module.all_finite(x.detach().numpy()))
+    return bool(torch.isfinite(x).all())
+
+
+# False: the residual term's backward tests its incoming gradient with torch.isfinite (bench-step's
+# "step-before" variant switches it)
+FUSED_FINITE = True
 
 
 def inner_residual_sq(params: torch.Tensor) -> torch.Tensor:
@@ -233,20 +246,41 @@ class _CurveAt(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, params, cols, weights):
+        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
+        ctx.fused = _fused_curves(params)
+        if ctx.fused:  # one pass over the rows (_trajectory_kernels.curve_at), same numbers
+            out = params.new_empty(params.shape[0], params.shape[2])
+            KERNELS.module.curve_at(params.detach().numpy(), np.asarray(cols, np.int64),
+                                    np.asarray(weights, _NP_DTYPE[params.dtype]), out.numpy())
+            return out
         out = None
         for c, w in zip(cols, weights):
             term = params[:, c] * w
             out = term if out is None else out.add_(term)
-        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
+        if ctx.fused and grad.dtype in _NP_DTYPE and grad.device.type == "cpu":
+            g = torch.empty(ctx.shape, dtype=grad.dtype)
+            KERNELS.module.curve_at_backward(grad.detach().contiguous().numpy(), np.asarray(ctx.cols, np.int64),
+                                             np.asarray(ctx.weights, _NP_DTYPE[grad.dtype]), g.numpy())
+            return g, None, None
         g = grad.new_zeros(ctx.shape)
         for c, w in zip(ctx.cols, ctx.weights):
             torch.mul(grad, w, out=g[:, c])
         return g, None, None
+
+
+_NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}
+# False: _CurveAt's forward and backward in torch column ops (bench-step's "step-before" variant)
+FUSED_CURVES = True
+
+
+def _fused_curves(params: torch.Tensor) -> bool:
+    return (FUSED_CURVES and params.device.type == "cpu" and params.dtype in _NP_DTYPE and params.is_contiguous()
+            and KERNELS.load() is not None)
 
 
 def evaluate(params: torch.Tensor, knot_times, t: float) -> torch.Tensor:
@@ -311,12 +345,13 @@ def default_knots(frame_times) -> list[float]:
 
 
 def warmup() -> float:
-    """Compile (first run on a machine) or load the residual-square kernels now, in the
-    layouts training passes them (float32; the gradient of a ``mean``); seconds taken."""
+    """Compile (first run on a machine) or load the residual-square and curve kernels now,
+    in the layouts training passes them (float32; the gradient of a ``mean``); seconds taken."""
     import time
 
     t0 = time.perf_counter()
     if KERNELS.load() is not None:
         p = torch.zeros(3, num_controls(3), 3, requires_grad=True)
         inner_residual_sq(p).mean().backward()
+        evaluate(p, [0.0, 0.5, 1.0], 0.25).sum().backward()  # the curves' forward / backward kernels
     return time.perf_counter() - t0

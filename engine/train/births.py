@@ -22,7 +22,7 @@ import torch
 
 from ..scene.gaussians import inverse_sigmoid, rgb_to_sh
 from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, view_tensors
-from .scene_flow import backproject_pixels, instant_depth_priors
+from .scene_flow import backproject_pixels, frame_image, instant_depth_priors
 
 __all__ = ["ALWAYS_LOG_SCALE", "birth_candidates", "ensure_temporal_opacity", "spawn_at_instant"]
 
@@ -72,7 +72,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
         vt = view_tensors(view, trainer.device)
         with torch.no_grad():
             rgb = model.render(vt, t, render_depth=False)[0][0].clamp(0, 1).cpu().numpy()
-        img = np.asarray(f.load_rgb(), np.float32)[..., :3]
+        img = frame_image(trainer, f)
         depth, ok = pri[id(f)]
         r, c = birth_candidates(rgb, img, depth, ok, cfg.birth_error, int(cfg.birth_stride), int(cfg.birth_max), rng)
         if len(r) == 0:

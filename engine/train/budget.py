@@ -24,6 +24,7 @@ from ..scene.hexplane_fused import warmup as hexplane_warmup
 from ..scene.selective_adam import warmup as selective_warmup
 from ..scene.trajectory import warmup as trajectory_warmup
 from .fused_ssim import warmup as ssim_warmup
+from .interpolation import warmup as flow_warmup
 from .nearest import warmup as nearest_warmup
 from .presets import TrainConfig
 
@@ -167,5 +168,6 @@ def warm_up_runtime(device) -> float:
         trajectory_warmup()  # the trajectories' residual-square term (engine.scene.trajectory)
         selective_warmup()  # gaussian_adam=selective's kernels (engine.scene.selective_adam)
         ssim_warmup()  # the D-SSIM term's kernels (engine.train.fused_ssim)
+        flow_warmup()  # the admissions' Lucas-Kanade flow kernels (engine.train.interpolation)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
     return time.perf_counter() - t0

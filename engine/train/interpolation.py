@@ -19,6 +19,13 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..numba_cache import LazyKernels
+
+KERNELS = LazyKernels(__package__, "_flow_kernels")  # lk_flow's box filter, median, warp (torch's numbers)
+# False: the Lucas-Kanade flow's box filter, median and warp run in torch, as before their
+# numba kernels (bench-step's "step-before" variant switches it)
+FUSED_BOX = True
+
 __all__ = ["linear_blend", "lk_flow", "warp", "flow_consistency", "flow_interpolate", "interpolate",
            "block_colour_loss", "avg_pool_blocks", "resample_area"]
 
@@ -41,7 +48,54 @@ def linear_blend(a: torch.Tensor, b: torch.Tensor, eps: float) -> torch.Tensor:
 
 def warp(img: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Backward warp: ``out(p) = img(p + flow(p))``; img [B, C, H, W], flow [B, 2, H, W]
-    (pixels). Bilinear, border-clamped."""
+    (pixels). Bilinear, border-clamped. On CPU float32 without autograd by
+    :func:`engine.train._flow_kernels.warp_border` where it equals this function's torch
+    path bit for bit (:func:`fused_warp_exact`, checked once per process)."""
+    if _fused_flow(img, flow) and flow.shape == (img.shape[0], 2, *img.shape[2:]):
+        img, flow = img.contiguous(), flow.contiguous()
+        out = torch.empty_like(img)
+        if KERNELS.module.warp_border(img.numpy(), flow.numpy(), out.numpy()):
+            return out
+    return _warp_torch(img, flow)
+
+
+_WARP_EXACT: bool | None = None
+
+
+def _fused_flow(*tensors) -> bool:
+    """The numba warp may take over: CPU float32 [B, C, H, W] tensors, no autograd, and
+    it equals ``F.grid_sample`` here."""
+    return (FUSED_BOX and all(t.device.type == "cpu" and t.dtype == torch.float32 and t.dim() == 4
+                              and not t.requires_grad for t in tensors) and fused_warp_exact())
+
+
+def fused_warp_exact() -> bool:
+    """True when the numba warp gives ``F.grid_sample``'s numbers here (checked once on
+    random images and flows, awkward sizes; False without numba)."""
+    global _WARP_EXACT
+    if _WARP_EXACT is None:
+        _WARP_EXACT = False
+        if KERNELS.load() is not None:
+            try:
+                gen = torch.Generator().manual_seed(4242)
+                ok = True
+                for shape in ((1, 1, 23, 37), (3, 3, 9, 8), (2, 1, 1, 5)):
+                    img = torch.rand(shape, generator=gen) * 4.0 - 1.0
+                    flow = torch.randn(shape[0], 2, *shape[2:], generator=gen) * 6.0
+                    out = torch.empty_like(img)
+                    ok &= bool(KERNELS.module.warp_border(img.numpy(), flow.numpy(), out.numpy()))
+                    ok &= torch.equal(out, _warp_torch(img, flow))
+                    ref = torch.rand(shape, generator=gen)
+                    sad = img.new_empty(shape[0], 1, *shape[2:])
+                    ok &= bool(KERNELS.module.warped_sad(ref.numpy(), img.numpy(), flow.numpy(), sad.numpy()))
+                    ok &= torch.equal(sad, (ref - _warp_torch(img, flow)).abs().sum(1, keepdim=True))
+                _WARP_EXACT = bool(ok)
+            except Exception:  # a numba / llvmlite that cannot compile the kernel: torch's path
+                _WARP_EXACT = False
+    return _WARP_EXACT
+
+
+def _warp_torch(img: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     B, _, H, W = img.shape
     ys, xs = torch.meshgrid(torch.arange(H, dtype=img.dtype, device=img.device),
                             torch.arange(W, dtype=img.dtype, device=img.device), indexing="ij")
@@ -62,11 +116,36 @@ def _grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _box(x: torch.Tensor, win: int) -> torch.Tensor:
+    """Box mean over ``win x win`` (odd) with replicated borders, [B, C, H, W] -> same shape.
+    On CPU float32 by :func:`engine.train._flow_kernels.box_replicate`: the same numbers
+    as the torch pooling below, bit for bit (tests/test_flow_kernels.py)."""
+    if (FUSED_BOX and win % 2 == 1 and x.device.type == "cpu" and x.dtype == torch.float32
+            and x.dim() == 4 and not x.requires_grad and KERNELS.load() is not None):
+        x = x.contiguous()
+        out = torch.empty_like(x)
+        KERNELS.module.box_replicate(x.view(-1, *x.shape[-2:]).numpy(), win // 2,
+                                     out.view(-1, *x.shape[-2:]).numpy())
+        return out
+    return _box_torch(x, win)
+
+
+def _box_torch(x: torch.Tensor, win: int) -> torch.Tensor:
     return F.avg_pool2d(F.pad(x, (win // 2,) * 4, mode="replicate"), win, stride=1)
 
 
 def _median3(x: torch.Tensor) -> torch.Tensor:
-    """3x3 median filter per channel (replicate border)."""
+    """3x3 median filter per channel (replicate border). On CPU float32 by
+    :func:`engine.train._flow_kernels.median3_replicate` (the same values: a selection)."""
+    if (FUSED_BOX and x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad
+            and KERNELS.load() is not None):
+        x = x.contiguous()
+        out = torch.empty_like(x)
+        KERNELS.module.median3_replicate(x.view(-1, *x.shape[-2:]).numpy(), out.view(-1, *x.shape[-2:]).numpy())
+        return out
+    return _median3_torch(x)
+
+
+def _median3_torch(x: torch.Tensor) -> torch.Tensor:
     B, C, H, W = x.shape
     p = F.unfold(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3)  # [B, C*9, H*W]
     return p.reshape(B, C, 9, H * W).median(2).values.reshape(B, C, H, W)
@@ -88,6 +167,13 @@ def _block_match(A: torch.Tensor, Bm: torch.Tensor, flow: torch.Tensor, radius: 
     shift = torch.tensor(offsets, dtype=flow.dtype, device=flow.device).repeat_interleave(b, 0)
     cands = flow.repeat(n, 1, 1, 1)
     cands += shift[:, :, None, None]
+    if _fused_flow(A, Bm, cands):  # the same numbers in three numba passes (_flow_kernels)
+        k = KERNELS.module
+        A, Bm, best_cost = A.contiguous(), Bm.contiguous(), best_cost.contiguous()
+        sad = A.new_empty(n * b, 1, *A.shape[-2:])
+        if k.warped_sad(A.numpy(), Bm.numpy(), cands.numpy(), sad.numpy()):
+            k.select_best(_box(sad, win).numpy(), cands.numpy(), n, best_cost.numpy(), best.numpy())
+            return best
     costs = _box((A.repeat(n, 1, 1, 1) - warp(Bm.repeat(n, 1, 1, 1), cands)).abs().sum(1, keepdim=True), win)
     for k in range(n):
         cand, cost = cands[k * b:(k + 1) * b], costs[k * b:(k + 1) * b]
@@ -237,3 +323,15 @@ def block_colour_loss(pred: torch.Tensor, target: torch.Tensor, k: int = 4,
         m = avg_pool_blocks(mask.to(pred.dtype)[..., None] if mask.dim() == pred.dim() - 1 else mask, k)
         return (d * m).sum() / (m.sum() * d.shape[-1]).clamp(min=1e-6)
     return d.mean()
+
+
+def warmup() -> float:
+    """Compile (first run on a machine) or load the Lucas-Kanade flow's kernels and run the
+    warp's exactness check now (engine.train.budget.warm_up_runtime); seconds taken."""
+    import time
+
+    t0 = time.perf_counter()
+    if fused_warp_exact():
+        a = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+        lk_flow(a, a.flip(-1))
+    return time.perf_counter() - t0

@@ -28,7 +28,7 @@ from .interpolation import lk_flow
 from .nearest import nearest_within
 
 __all__ = ["dense_flow", "image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden",
-           "propagate_to_hidden_dense", "carry_trajectories"]
+           "propagate_to_hidden_dense", "carry_trajectories", "frame_image"]
 
 
 def _grey8(img: np.ndarray) -> np.ndarray:
@@ -204,6 +204,27 @@ def instant_depth_priors(trainer, frames) -> dict:
     return trainer._stereo_priors
 
 
+# False: the carry and the births read the frames from disk at each admission (bench-step's
+# "step-before" variant)
+ITEM_IMAGES = True
+
+
+def frame_image(trainer, frame) -> np.ndarray:
+    """The RGB image [H, W, 3] float32 of a train ``frame``: the copy the trainer holds
+    (``trainer.items``, loaded once per run) when it trains on that frame, else read from
+    disk (e.g. a frame early stopping holds back) -- the same numbers either way."""
+    if not ITEM_IMAGES:
+        return np.asarray(frame.load_rgb(), np.float32)[..., :3]
+    cache = getattr(trainer, "_item_images", None)
+    if cache is None:
+        cache = trainer._item_images = {(it["camera"], round(float(it["time"]), 9)): it["image"]
+                                         for it in getattr(trainer, "items", ())}
+    img = cache.get((frame.camera, round(float(frame.time), 9)))
+    if img is not None and img.device.type == "cpu":
+        return img[0].numpy()
+    return np.asarray(frame.load_rgb(), np.float32)[..., :3]
+
+
 def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
     """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i`` in
     a train camera along that camera's optical flow, lifted by the stereo depth at
@@ -224,7 +245,7 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
         fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
         if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
             continue
-        img_a, img_b = fa.load_rgb(), fb.load_rgb()
+        img_a, img_b = frame_image(trainer, fa), frame_image(trainer, fb)
         back = image_flow(img_b, img_a, method) if fb_tol > 0 else None
         new, ok, st = carry_by_flow(pos_i, trainer.capture.view(fa), image_flow(img_a, img_b, method), *pri[id(fa)],
                                     *pri[id(fb)], return_still=True, flow_ba=back, fb_tol_px=fb_tol)
