@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import threading
 
 import numpy as np
@@ -577,9 +578,11 @@ def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
     cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
     tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
     rec = reestimate_deform_steps(tr, 400, 0.01, remaining_s=5.0)    # 500 more steps fit
-    assert rec["total_steps"] == 900 and "clamped" not in rec
-    rec = reestimate_deform_steps(tr, 400, 0.001, remaining_s=100.0)  # would put step 400 back in the static stage
-    assert rec["clamped"] and int(round(0.3 * rec["total_steps"])) <= 400 < int(round(0.3 * (rec["total_steps"] + 2)))
+    assert rec["total_steps"] == 900 and rec["previous_total_steps"] == 1000
+    rec = reestimate_deform_steps(tr, 400, 0.001, remaining_s=100.0)  # 1e5 more: step / total would be static again
+    assert rec["total_steps"] == 100400 and int(round(0.3 * rec["total_steps"])) > 400
+    tr.schedule.replan(400, rec["total_steps"])                        # the schedule's clock keeps the stage
+    assert tr.stage_of(400) == "deform" and tr.static_steps == 300
     rec = reestimate_deform_steps(tr, 400, 0.5, remaining_s=-1.0)     # over budget: the next step still runs
     assert rec["total_steps"] == 401
 
@@ -605,12 +608,13 @@ def test_budget_re_estimate_keeps_the_schedule_consistent(tiny_capture):
     cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
     tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
     probe = {"static_step_s": 0.01, "deform_step_s": 0.02}
-    rec = reestimate_steps(tr, 50, 0.1, probe, loop_seconds=10.0)     # 10x slower than probed
-    assert rec["clamped"] and rec["deform_step_s"] == pytest.approx(0.2)
-    tr.total_steps = rec["total_steps"]
-    assert tr.stage_of(50) == "static"                               # the next step stays static
+    rec = reestimate_steps(tr, 50, 0.1, probe, loop_seconds=30.0)     # 10x slower than probed
+    assert rec["total_steps"] == 117 and rec["deform_step_s"] == pytest.approx(0.2)
+    tr.schedule.replan(50, rec["total_steps"])  # the rest of the static stage shrinks with the rest of the run
+    assert tr.stage_of(50) == "static" and tr.static_steps == 50 + math.ceil(250 / (950 / 67))
+    tr.total_steps = 1000
     rec = reestimate_steps(tr, 50, 0.001, probe, loop_seconds=100.0)  # faster: more steps
-    assert rec["total_steps"] > 1000 and "clamped" not in rec
+    assert rec["total_steps"] > 1000
     tr.total_steps = 100
     rec = reestimate_steps(tr, 40, 0.001, probe, loop_seconds=100.0)  # already deforming: no change
     assert rec["total_steps"] == 100 and "skipped" in rec

@@ -167,7 +167,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         budget_estimates["deform"] = []
     out = {"loss": float("nan"), "psnr": float("nan")}
     try:
-        while step < total and stopped_early is None:
+        while step < trainer.total_steps and stopped_early is None:
             if cancel is not None and cancel.is_set():
                 status = "cancelled"
                 break
@@ -176,6 +176,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                 break
             out = trainer.step(step)
             step += 1
+            total = trainer.total_steps
             if early is not None and early.update(trainer, step):
                 stopped_early = early.stopped_at
             now = time.perf_counter()
@@ -186,7 +187,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                                        budget_end - loop_t0 - 1.0)
                 budget_estimates["measured"] = rec
                 if rec["total_steps"] != total:
-                    total = trainer.total_steps = rec["total_steps"]
+                    trainer.schedule.replan(step, rec["total_steps"])  # continuous: engine.train.schedule
+                    total = trainer.total_steps
                     if early is not None:
                         early._next = min(early._next, step + early.every(total))
                 update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
@@ -199,7 +201,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                     rec = reestimate_deform_steps(trainer, step, rate, budget_end - now - END_RESERVE_S)
                     budget_estimates["deform"].append(rec)
                     if rec["total_steps"] != total:
-                        total = trainer.total_steps = rec["total_steps"]
+                        trainer.schedule.replan(step, rec["total_steps"])
+                        total = trainer.total_steps
                         if early is not None:
                             early._next = min(early._next, step + early.every(total))
                     deform_mark = (step, now)
