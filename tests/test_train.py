@@ -537,16 +537,19 @@ def test_seconds_budget_is_re_estimated_from_the_real_steps(tiny_capture, tmp_pa
     assert measured["at_step"] == budget_mod.reestimate_at(probe["total_steps"])
     assert measured["static_step_s"] == pytest.approx(0.05, rel=0.5)
     assert measured["total_steps"] < probe["total_steps"] / 4
-    assert s["total_steps"] == measured["total_steps"] == read_run_json(run)["total_steps"]
+    # the deformation stage (the last 10%) re-plans from its own rate, then fills time left at the end
+    assert s["total_steps"] == read_run_json(run)["total_steps"] >= measured["total_steps"]
+    assert s["total_steps"] == measured["total_steps"] or est["deform"][-1]["total_steps"] == s["total_steps"]
     assert s["status"] == "finished" and s["step"] == s["total_steps"] and not s["stopped_by_budget"]
     assert s["budget_estimates"] == est
 
 
-@pytest.mark.parametrize("profile", ["cheaper", "growing"])
+@pytest.mark.parametrize("profile", ["cheaper", "growing", "faster_at_the_end"])
 def test_seconds_budget_run_ends_within_5_percent_of_its_budget(tiny_capture, tmp_path, monkeypatch, profile):
     """The deformation stage's cost is unknown up front: cheaper than probed (a run sized
-    by the probe alone ends far too early, issue 13) or growing step by step (densification).
-    The deformation-stage re-estimates end the run within 5% of its budget either way."""
+    by the probe alone ends far too early, issue 13), growing step by step (densification),
+    or dropping after the last re-estimate (a loaded machine freed: the plan runs out with
+    time left, which the run fills with more steps). It ends within 5% of its budget."""
     import time as _time
 
     monkeypatch.setattr(run_mod, "measure_step_seconds", lambda trainer: (0.01, 0.02))
@@ -556,6 +559,8 @@ def test_seconds_budget_run_ends_within_5_percent_of_its_budget(tiny_capture, tm
             cost = 0.01
         elif profile == "cheaper":
             cost = 0.006
+        elif profile == "faster_at_the_end":
+            cost = 0.003 if self.schedule.run_progress(i) > 0.92 else 0.03
         else:
             cost = 0.01 + 0.02 * min(1.0, i / max(1, self.total_steps))
         _time.sleep(cost)
