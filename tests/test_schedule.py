@@ -172,3 +172,15 @@ def test_cancel_and_resume_after_a_re_plan_equals_an_uninterrupted_run(tiny_capt
     for k, v in a["model"]["gaussians"]["params"].items():
         torch.testing.assert_close(v, b["model"]["gaussians"]["params"][k], atol=1e-5, rtol=1e-4)
     assert not math.isnan(float(s2["loss"]))
+
+
+def test_densify_window_follows_the_clock_and_its_cadence_the_real_steps():
+    """The window is a share of the run; the cadence stays ``densify_every`` real steps (the
+    gradient statistics gather per step), so a run stretched 2.5x densifies 2.5x as often."""
+    cfg = get_preset("fast", {"densify_from": 0.1, "densify_until": 0.7, "densify_every": 10})
+    sch = Schedule.plan(100)
+    sch.replan(5, 255)                                   # the rest of the plan over 250 steps: 0.38 per step
+    events = [s for s in range(sch.total) if sch.densify_due(s, cfg)]
+    assert np.all(np.diff(events) == 10)
+    assert sch.virtual(events[0] - 10) >= 10 and sch.virtual(events[-1]) < 70 <= sch.virtual(events[-1] + 10)
+    assert len(events) == 15                             # 5 in the 100-step plan (20, 30, ..., 60)

@@ -540,7 +540,8 @@ def test_seconds_budget_is_re_estimated_from_the_real_steps(tiny_capture, tmp_pa
     # the deformation stage (the last 10%) re-plans from its own rate, then fills time left at the end
     assert s["total_steps"] == read_run_json(run)["total_steps"] >= measured["total_steps"]
     assert s["total_steps"] == measured["total_steps"] or est["deform"][-1]["total_steps"] == s["total_steps"]
-    assert s["status"] == "finished" and s["step"] == s["total_steps"] and not s["stopped_by_budget"]
+    # a fill aims at the budget's end (less the final checkpoint's reserve): the hard stop may cut its last step
+    assert s["status"] == "finished" and (s["step"] == s["total_steps"] or s["stopped_by_budget"])
     assert s["budget_estimates"] == est
 
 

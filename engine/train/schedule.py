@@ -113,18 +113,20 @@ class Schedule:
         s0 = self.static_end(static_fraction)
         return (self.virtual(step) - s0) / max(1, self.nominal - s0 - last)
 
-    def densify_window(self, cfg) -> tuple[int, int, int]:
-        """(first, end, cadence) of densification in virtual steps (fractions of the run)."""
-        lo = int(cfg.densify_from * self.nominal)
-        hi = int(cfg.densify_until * self.nominal)
-        every = max(1, min(cfg.densify_every, max(1, (hi - lo) // 3)))
-        return lo, hi, every
+    def densify_window(self, cfg) -> tuple[int, int]:
+        """(first, end) of densification in virtual steps (fractions of the run)."""
+        return int(cfg.densify_from * self.nominal), int(cfg.densify_until * self.nominal)
 
     def densify_due(self, step: int, cfg) -> bool:
-        """Densify after ``step``: a cadence mark after the window's start passed, inside it."""
-        lo, hi, every = self.densify_window(cfg)
-        m = self.mark_at(step, lo + every, every)
-        return m is not None and m < hi and self.virtual(step) < hi
+        """Densify after ``step``: inside the window, every ``densify_every`` *real* steps from
+        its first step (at least 3 times in it). The window is a share of the run, the cadence is
+        not: the gradient statistics gather per real step (3DGS: every 100 iterations), and a
+        cadence on the clock densified a run planned at 501 steps that ran 1080 only 3 times (between,
+        120 s, load ~8: 17.1k Gaussians; the old schedule: 5 times, 21.5k; this cadence: 5)."""
+        lo, hi = self.densify_window(cfg)
+        lo_s, hi_s = self.first_step_at(lo), self.first_step_at(hi)
+        every = max(1, min(cfg.densify_every, max(1, (hi_s - lo_s) // 3)))
+        return lo_s < step and self.virtual(step) < hi and (step - lo_s) % every == 0
 
     def in_densify_window(self, step: int, cfg) -> bool:
         """Gather densification statistics at ``step`` (before the window's end)."""
