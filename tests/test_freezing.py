@@ -189,6 +189,7 @@ def _fake_trainer(n=40):
     from engine.scene.deformation import DeformationField
     from engine.scene.gaussians import GaussianModel
     from engine.scene.model import Model4D, view_tensors
+    from engine.train.schedule import Schedule
 
     rng = np.random.default_rng(0)
     g = GaussianModel(rng.uniform(-0.5, 0.5, (n, 3)), rng.random((n, 3)), init_opacity=0.5)
@@ -199,7 +200,8 @@ def _fake_trainer(n=40):
     item = view_tensors(view, "cpu")
     item["camera"] = "cam"
     item["image"] = torch.zeros(1, 24, 32, 3)
-    return SimpleNamespace(model=model, static_steps=0, total_steps=100, frame_times=[0.0, 0.5, 1.0], items=[item])
+    return SimpleNamespace(model=model, static_steps=0, total_steps=100, frame_times=[0.0, 0.5, 1.0], items=[item],
+                           schedule=Schedule.plan(100), cfg=SimpleNamespace(static_fraction=0.0))
 
 
 def test_train_freezer_freezes_static_field_follows_prune_wakes_and_checkpoints():

@@ -4,8 +4,11 @@ The step count is chosen up front from the measured cost of a few throw-away ste
 copy of the model (:func:`measure_step_seconds`, :func:`steps_for_budget`), then
 re-estimated from the rate of the real steps after ~5% of the run
 (:func:`reestimate_at`, :func:`reestimate_steps`), while the run is still in the static
-stage so that every schedule (a fraction of the total) stays consistent, and again every
-10% of the deformation stage from that stage's own rate (:func:`reestimate_deform_steps`).
+stage, and again every 10% of the deformation stage from that stage's own rate
+(:func:`reestimate_deform_steps`). The run applies a new total with
+:meth:`engine.train.schedule.Schedule.replan`: every schedule keeps its current progress and
+spreads the rest over the new remaining steps, so a re-plan never moves a stage boundary
+back or makes a schedule jump.
 Kernel compilation and first imports run before the budget's clock starts
 (:func:`warm_up_runtime`).
 """
@@ -99,23 +102,18 @@ def reestimate_steps(trainer, done: int, step_seconds: float, probe: dict, loop_
 
     ``probe``: the up-front estimate (``static_step_s``, ``deform_step_s``); the deformation
     steps are scaled by the same factor as the static ones. Only while the run is still in
-    the static stage (the schedules are fractions of the total): the new total is clamped so
-    that the next step stays static. Returns the record for run.json (``total_steps`` is the
-    new total, or the old one with ``skipped``)."""
+    the static stage (the deformation stage re-plans from its own rate). Returns the record
+    for run.json (``total_steps`` is the new total, or the old one with ``skipped``)."""
     cfg = trainer.cfg
     old = trainer.total_steps
     scale = step_seconds / max(probe["static_step_s"], 1e-9)
     rec = {"at_step": int(done), "static_step_s": round(step_seconds, 5),
            "deform_step_s": round(probe["deform_step_s"] * scale, 5), "total_steps": old}
     if cfg.static_fraction <= 0 or done >= trainer.static_steps:
-        rec["skipped"] = "the deformation stage has started (its schedule is a fraction of the total)"
+        rec["skipped"] = "the deformation stage has started (it re-plans from its own rate)"
         return rec
     new = steps_for_budget(loop_seconds, step_seconds, probe["deform_step_s"] * scale, cfg)
-    new = max(new, done + 1)
-    while int(round(cfg.static_fraction * new)) <= done:  # keep the next step in the static stage
-        new += 1
-        rec["clamped"] = True
-    rec["total_steps"] = int(new)
+    rec["total_steps"] = int(max(new, done + 1))
     return rec
 
 
@@ -131,22 +129,11 @@ def reestimate_deform_steps(trainer, done: int, step_seconds: float, remaining_s
     curriculum (the probe's fixed 1.5x growth made runs end 17% early, issue 13), so the
     deformation stage re-plans from its own recent rate every ``DEFORM_REESTIMATE_EVERY``
     of the run; a rising cost is caught by the next re-estimate, and the budget's hard stop
-    bounds the last one. The new total keeps the schedule's stage (``static_steps <= done``)
-    and lets at least the next step run. Returns the record for run.json."""
-    cfg = trainer.cfg
-    old = trainer.total_steps
+    bounds the last one. The new total lets at least the next step run (the schedule's
+    virtual clock keeps the stage, engine.train.schedule). Returns the record for run.json."""
     new = done + max(1, int(max(0.0, remaining_s) / max(step_seconds, 1e-6)))
-    rec = {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
-           "total_steps": int(new)}
-    if cfg.static_fraction > 0:
-        cap = int(math.floor((done + 0.5) / cfg.static_fraction)) + 1
-        while int(round(cfg.static_fraction * cap)) > done:
-            cap -= 1
-        if new > cap:
-            rec["total_steps"] = int(max(cap, done + 1))
-            rec["clamped"] = True
-    rec["previous_total_steps"] = int(old)
-    return rec
+    return {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
+            "total_steps": int(new), "previous_total_steps": int(trainer.total_steps)}
 
 
 def warm_up_runtime(device) -> float:

@@ -111,8 +111,7 @@ class EarlyStop:
             return False
         total = trainer.total_steps
         self._next = done + self.every(total)
-        s0 = trainer.static_steps
-        deform_done = (done - s0) / max(1, total - s0)
+        deform_done = trainer.schedule.deform_progress(done, trainer.cfg.static_fraction)
         t0 = time.perf_counter()
         score = self.score(trainer.model)
         self.eval_seconds += time.perf_counter() - t0

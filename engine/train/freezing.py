@@ -405,10 +405,10 @@ class TrainFreezer:
         return ts
 
     def schedule(self) -> tuple[int, int]:
-        """(first check step, steps between checks) for the trainer's current total."""
+        """(first check, steps between checks) in the trainer's virtual steps (engine.train.schedule)."""
         tr = self.trainer
-        s0 = tr.static_steps
-        deform_steps = max(1, tr.total_steps - s0)
+        s0 = tr.schedule.static_end(tr.cfg.static_fraction)
+        deform_steps = max(1, tr.schedule.nominal - s0)
         start = s0 + int(self.start_fraction * deform_steps)
         every = self.check_every or max(1, deform_steps // self.checks_per_stage)
         return start, every
@@ -436,7 +436,7 @@ class TrainFreezer:
         if not self._active():
             return None
         start, every = self.schedule()
-        if step < start or (step - start) % every:
+        if self.trainer.schedule.mark_at(step, start, every) is None:
             return None
         f = self._ensure()
         tr = self.trainer

@@ -163,11 +163,12 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     reestimate_step = reestimate_at(total) if budget_estimates is not None else None
     deform_mark = None  # (step, time) where the current deformation-stage rate window starts
     next_deform_check = None
+    deform_rate = None  # the latest measured seconds per deformation step
     if budget_estimates is not None:
         budget_estimates["deform"] = []
     out = {"loss": float("nan"), "psnr": float("nan")}
     try:
-        while step < total and stopped_early is None:
+        while step < trainer.total_steps and stopped_early is None:
             if cancel is not None and cancel.is_set():
                 status = "cancelled"
                 break
@@ -176,6 +177,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                 break
             out = trainer.step(step)
             step += 1
+            total = trainer.total_steps
             if early is not None and early.update(trainer, step):
                 stopped_early = early.stopped_at
             now = time.perf_counter()
@@ -186,7 +188,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                                        budget_end - loop_t0 - 1.0)
                 budget_estimates["measured"] = rec
                 if rec["total_steps"] != total:
-                    total = trainer.total_steps = rec["total_steps"]
+                    trainer.schedule.replan(step, rec["total_steps"])  # continuous: engine.train.schedule
+                    total = trainer.total_steps
                     if early is not None:
                         early._next = min(early._next, step + early.every(total))
                 update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
@@ -195,16 +198,31 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                     deform_mark = (step, now)
                     next_deform_check = step + max(5, int(0.5 * DEFORM_REESTIMATE_EVERY * total))
                 elif step >= next_deform_check and step < total:
-                    rate = (now - deform_mark[1]) / max(1, step - deform_mark[0])
+                    rate = deform_rate = (now - deform_mark[1]) / max(1, step - deform_mark[0])
                     rec = reestimate_deform_steps(trainer, step, rate, budget_end - now - END_RESERVE_S)
                     budget_estimates["deform"].append(rec)
                     if rec["total_steps"] != total:
-                        total = trainer.total_steps = rec["total_steps"]
+                        trainer.schedule.replan(step, rec["total_steps"])
+                        total = trainer.total_steps
                         if early is not None:
                             early._next = min(early._next, step + early.every(total))
                     deform_mark = (step, now)
                     next_deform_check = step + max(5, int(DEFORM_REESTIMATE_EVERY * total))
                     update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
+                if step == total and stopped_early is None and deform_mark is not None:
+                    # the plan ran out with time left (steps got cheaper after the last re-estimate):
+                    # fill it at the schedule's end values (the clock keeps them, engine.train.schedule)
+                    if step > deform_mark[0]:
+                        deform_rate = (now - deform_mark[1]) / (step - deform_mark[0])
+                    left = budget_end - now - END_RESERVE_S
+                    if deform_rate is not None and left >= 2 * deform_rate:
+                        rec = dict(reestimate_deform_steps(trainer, step, deform_rate, left), fill=True)
+                        budget_estimates["deform"].append(rec)
+                        trainer.schedule.replan(step, rec["total_steps"])
+                        total = trainer.total_steps
+                        deform_mark = (step, now)
+                        next_deform_check = step + max(5, int(DEFORM_REESTIMATE_EVERY * total))
+                        update_run_json(run_dir, budget_estimates=budget_estimates, total_steps=total)
             if progress is not None:
                 el = now - loop_t0
                 rate = el / max(1, step - start_step)
@@ -235,7 +253,9 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         "stopped_early": stopped_early, "skips": skips,
     }
     if budget_estimates is not None:
+        budget_estimates["schedule"] = trainer.schedule.state_dict()  # the clock's segments, one per re-plan
         summary["budget_estimates"] = budget_estimates
+        update_run_json(run_dir, budget_estimates=budget_estimates)
     update_run_json(run_dir, status=status, step=step, total_steps=total, train_seconds=train_seconds,
                     num_gaussians=summary["num_gaussians"], stopped_by_budget=stopped_by_budget,
                     stopped_early=stopped_early, skips=skips, finished=_now())

@@ -14,8 +14,9 @@ D-SSIM on the RGB frame plus the deformation regularisers, and the terms of the 
 factories in :data:`LOSS_FACTORIES` (the spike guidance and its along-ray prior; none with
 ``rgb_only=True``).
 
-The schedule is a function of the total step count only (``engine.train.presets``); the
-loop around the trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.run`.
+Every schedule reads one clock, :class:`engine.train.schedule.Schedule` (fractions of
+``engine.train.presets``, continuous when a budget run re-plans its total); the loop around
+the trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.run`.
 
 Skipping what a scene does not need (switches of :class:`TrainConfig`, all off by default,
 checkpointed with the run so that cancel + resume equals an uninterrupted run):
@@ -52,6 +53,7 @@ from .freezing import TrainFreezer
 from .geometry_losses import geometry_post_step_hooks, step_background
 from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms
 from .presets import TrainConfig, block_weight
+from .schedule import Schedule
 from .spike_flow import spike_flow_factory
 from .spike_guidance import guidance_factory, spike_stream_info
 
@@ -186,19 +188,17 @@ class Trainer:
         self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.early_stop else None
         self.cull: FrustumCuller | None = FrustumCuller() if cfg.cull_frustum else None
 
-    # ---- schedule (a pure function of total_steps) --------------------------------------
+    # ---- schedule: every one reads one clock, continuous under budget re-plans (engine.train.schedule) ----
+    total_steps = property(lambda self: self.schedule.total,
+                           lambda self, n: setattr(self, "schedule", Schedule.plan(n)),
+                           doc="Real steps planned; setting it plans afresh (mid-run re-plans: schedule.replan)")
+
     @property
     def static_steps(self) -> int:
-        return int(round(self.cfg.static_fraction * self.total_steps))
+        return self.schedule.static_steps(self.cfg.static_fraction)
 
     def stage_of(self, step: int) -> str:
         return "static" if step < self.static_steps else "deform"
-
-    def densify_schedule(self):
-        lo = int(self.cfg.densify_from * self.total_steps)
-        hi = int(self.cfg.densify_until * self.total_steps)
-        every = max(1, min(self.cfg.densify_every, max(1, (hi - lo) // 3)))
-        return lo, hi, every
 
     def time_window(self, step: int) -> float:
         """Latest capture time trained on at ``step`` (time curriculum of the deformation stage).
@@ -214,8 +214,7 @@ class Trainer:
             return t0 if self.cfg.static_frames == "first" and self.cfg.static_fraction < 1.0 else t1
         if self.cfg.time_curriculum <= 0:
             return t1
-        s0 = self.static_steps
-        p = (step - s0) / max(1, self.total_steps - s0)
+        p = self.schedule.deform_progress(step, self.cfg.static_fraction)
         return t0 + (t1 - t0) * min(1.0, p / self.cfg.time_curriculum)
 
     def frame_pool(self, step: int) -> list[int]:
@@ -363,9 +362,8 @@ class Trainer:
         self.deform_opt.add_param_group({"params": list(params), "lr": lr, "name": name})
 
     def _update_lrs(self, step: int) -> None:
-        self.model.gaussians.update_learning_rate(step / max(1, self.total_steps - 1))
-        s0 = self.static_steps
-        p = min(1.0, max(0.0, (step - s0) / max(1, self.total_steps - s0 - 1)))
+        self.model.gaussians.update_learning_rate(self.schedule.run_progress(step))
+        p = min(1.0, max(0.0, self.schedule.deform_progress(step, self.cfg.static_fraction, last=1)))
         if self.model.trajectory is not None:  # decays over the deformation stage, like the field
             for grp in self.model.gaussians.optimizer.param_groups:
                 if grp["name"] == TRAJ_MEANS:
@@ -387,7 +385,7 @@ class Trainer:
         if stage == "deform" and not model.use_deformation:
             self.start_deformation()
         if cfg.sh_degree > 0 and cfg.sh_step_fraction > 0:
-            want = min(cfg.sh_degree, int(step / max(1, cfg.sh_step_fraction * self.total_steps)))
+            want = self.schedule.sh_degree(step, cfg)
             while g.active_sh_degree < want:
                 g.oneup_sh_degree()
         self._update_lrs(step)
@@ -417,8 +415,8 @@ class Trainer:
         total.backward()
 
         # densification statistics and schedule
-        lo, hi, every = self.densify_schedule()
-        if step < hi and means2d is not None and means2d.grad is not None:
+        dense = self.schedule.in_densify_window(step, cfg)
+        if dense and means2d is not None and means2d.grad is not None:
             g.add_densification_stats(means2d.grad, meta["radii"], item["width"], item["height"])
         g.optimizer.step()
         if self.deform_opt is not None and stage == "deform":
@@ -428,15 +426,15 @@ class Trainer:
         if self.freeze is not None and stage == "deform":  # observation module, on this render's rows
             self.freeze.after_step(step, item, rgb, meta)
         info = {}
-        if lo <= step < hi and step > 0 and (step - lo) % every == 0 and step != lo:
+        if self.schedule.densify_due(step, cfg):
             gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
             info = g.densify_and_prune(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
                                        min_opacity=cfg.prune_opacity, max_world_scale=cfg.prune_big_world,
                                        max_gaussians=cfg.max_gaussians,
                                        generator=gen if self.device.type == "cpu" else None)
-        if cfg.opacity_reset_every and step > 0 and step % cfg.opacity_reset_every == 0 and step < hi:
+        if cfg.opacity_reset_every and step > 0 and step % cfg.opacity_reset_every == 0 and dense:
             g.reset_opacity()
-        if self.cull is not None and (step == 0 or step == self.static_steps or info):
+        if self.cull is not None and (step == 0 or (stage == "deform" and self.stage_of(step - 1) == "static") or info):
             self.cull(self, step)
         if self.freeze is not None and stage == "deform":  # prediction module (periodic motion checks)
             self.freeze.maybe_check(step)
@@ -453,6 +451,7 @@ class Trainer:
             "deform_optimizer": None if self.deform_opt is None else self.deform_opt.state_dict(),
             "step": int(step),
             "total_steps": int(self.total_steps),
+            "schedule": self.schedule.state_dict(),
             "time_range": list(self.time_range),
             "frame_times": list(self.frame_times),
             "extent": self.extent,
@@ -477,7 +476,7 @@ class Trainer:
         return out
 
     def load_state(self, state: dict) -> int:
-        self.total_steps = int(state["total_steps"])
+        self.schedule = Schedule.from_state(state.get("schedule"), int(state["total_steps"]))
         self.extent = float(state.get("extent", 1.0))
         self.field_box = state.get("field_box")
         self.init_info = state.get("init", {})
