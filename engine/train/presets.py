@@ -214,6 +214,11 @@ class TrainConfig:
     spike_flow_max_gaussians: int = 4096  # random subset of the surface Gaussians per step (0: all)
     spike_flow_fit: bool = True  # once per interval, least-squares fit of the inner control points to the flow
     spike_flow_min_px: float = 0.5  # the fit leaves curves whose median flow is below this (spike px) where they are
+    # quiet curves (issue 11, engine.train.quiet_curves): segment k's inner control points stay at zero
+    # (the Catmull-Rom curve) for Gaussians that project at both of its RGB instants where the spike view
+    # saw no change in interval k (dilated by quiet_curves_dilate change-map blocks)
+    quiet_curves: bool = False
+    quiet_curves_dilate: int = 1
     baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img
     baseline_per_interval: int = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
 
