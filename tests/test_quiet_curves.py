@@ -104,6 +104,12 @@ def test_trainer_holds_quiet_curves_and_only_those(demo_capture):
     for k in range(used.shape[1]):
         assert (q[used[:, k], 3 * k + 1:3 * k + 3] == 0).all()
     assert float(inner[~used].max()) > 0.0  # where the spike view changed, curves bend
+    # a copy of the model (the budget probe's) gets its own mask, not the run's cached one
+    import copy
+
+    probe = copy.deepcopy(on.model)
+    on.quiet_curves.mask(probe, _TINY["iterations"] - 1)
+    assert on.quiet_curves._mask[4] == id(getattr(probe.gaussians, TRAJ_MEANS))
     # without the switch the spike terms bend segments that the hook would have held
     off_quiet = on.quiet_curves.mask(off.model, 10 ** 6)
     assert float(_inner_norms(off)[off_quiet].max()) > 0.0
@@ -120,3 +126,32 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     tr.cfg = get_preset("fast", {"quiet_curves": True, "motion": "hexplane"})
     tr.spike_guidance = object()
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # curves only
+
+
+def test_flatten_curves_script_zeroes_every_bend_and_keeps_the_junctions(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "flatten_curves.py"
+    spec = importlib.util.spec_from_file_location("flatten_curves", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text("{}")
+    curves, quats = torch.randn(5, 7, 3), torch.randn(5, 7, 4)
+    params = {"means": torch.randn(5, 3), TRAJ_MEANS: curves.clone(), TRAJ_QUATS: quats.clone()}
+    torch.save({"model": {"gaussians": {"params": params}, "trajectory": {"knots": [0.0, 0.1, 0.2]}}},
+               run / "checkpoint.pt")
+    assert mod.main([str(run), str(tmp_path / "flat")]) == 0
+    out = torch.load(tmp_path / "flat" / "checkpoint.pt", weights_only=False)["model"]["gaussians"]["params"]
+    for name, before in ((TRAJ_MEANS, curves), (TRAJ_QUATS, quats)):
+        assert (out[name][:, [1, 2, 4, 5]] == 0).all() and torch.equal(out[name][:, 0::3], before[:, 0::3])
+    assert (tmp_path / "flat" / "run.json").exists()
+    assert torch.equal(torch.load(run / "checkpoint.pt", weights_only=False)["model"]["gaussians"]["params"]
+                       [TRAJ_MEANS], curves)  # the run itself is untouched
+    del params[TRAJ_MEANS]
+    torch.save({"model": {"gaussians": {"params": params}, "trajectory": {"knots": [0.0, 0.1, 0.2]}}},
+               run / "checkpoint.pt")
+    with pytest.raises(SystemExit, match="no per-Gaussian trajectories"):
+        mod.main([str(run), str(tmp_path / "flat2")])

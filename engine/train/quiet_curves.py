@@ -95,7 +95,8 @@ class QuietCurves:
         self.K = torch.as_tensor(stream.intrinsics.K, dtype=torch.float32)
         self.size = (int(stream.width), int(stream.height))
         self.change = change
-        self._mask: tuple | None = None  # (step, N, quiet [N, F-1], {channels: inner_keep(quiet, channels)})
+        # (step, N, quiet [N, F-1], {channels: inner_keep(quiet, channels)}, id of the curves' tensor)
+        self._mask: tuple | None = None
         self.last: dict = {}
 
     def intervals(self, knots) -> list:
@@ -111,12 +112,14 @@ class QuietCurves:
         g = model.gaussians
         params = getattr(g, TRAJ_MEANS)
         hit = self._mask
-        if hit is None or hit[1] != params.shape[0] or step - hit[0] >= self.REFRESH or step < hit[0]:
+        # keyed on the curves' tensor too: the budget probe steps a copy of the model through this hook
+        if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= self.REFRESH or step < hit[0]
+                or hit[4] != id(params)):
             dev = params.device
             quiet = quiet_segments(g.means.detach(), params.detach()[:, 0::3], self.change,
                                    self.intervals(model.trajectory["knots"]), self.viewmat.to(dev),
                                    self.K.to(dev), *self.size, dilate=int(self.cfg.quiet_curves_dilate))
-            self._mask = hit = (step, params.shape[0], quiet, {})
+            self._mask = hit = (step, params.shape[0], quiet, {}, id(params))
             self.last = {"step": int(step), "quiet_fraction": float(quiet.float().mean()) if quiet.numel() else 0.0}
         return hit[2]
 
