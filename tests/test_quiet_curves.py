@@ -120,6 +120,7 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
 
     from engine.train.quiet_curves import quiet_curves_factory
 
+    assert get_preset("fast").quiet_curves and get_preset("fast").quiet_curves_dilate == 1  # on (README)
     cfg = get_preset("fast", {"quiet_curves": True})
     tr = types.SimpleNamespace(cfg=cfg, spike_guidance=None, post_step_hooks=[])
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # rgb_only / no spikes: nothing
