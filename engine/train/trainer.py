@@ -53,17 +53,17 @@ from .freezing import TrainFreezer
 from .geometry_losses import geometry_post_step_hooks, step_background
 from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms
 from .presets import TrainConfig, block_weight
+from .quiet_curves import quiet_curves_factory
 from .schedule import Schedule
 from .spike_flow import spike_flow_factory
 from .spike_guidance import guidance_factory, spike_stream_info
 
-# The loss factories of a run, in one place: each ``(trainer) -> [LossTerm]`` is called when a
-# (non rgb_only) run starts. The spike guidance (paper Eq. 4-23) returns nothing without a
-# spike stream, so such captures train exactly as the RGB-only model. The along-ray prior
-# (issue 11) and the spike-view flow term ride on the guidance's between-frame instants, so
-# they come after it.
+# The loss factories of a run: each ``(trainer) -> [LossTerm]`` is called when a (non rgb_only) run starts. The spike
+# guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the along-ray prior,
+# the spike-view flow term and the quiet-curves hook (after the flow fit; issue 11) ride on its between instants.
 LossFactory = Callable[["Trainer"], "list[LossTerm] | None"]
-LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, along_ray_factory, spike_flow_factory)
+LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, along_ray_factory, spike_flow_factory,
+                                           quiet_curves_factory)
 
 
 # ---------------------------------------------------------------------------------- helpers

@@ -1,0 +1,168 @@
+"""Quiet curves: no in-between bend where the spike view saw nothing change (issue 11).
+
+With per-Gaussian trajectories (engine.scene.trajectory) the RGB frames fix each curve's
+junctions; its inner control points (residuals from the Catmull-Rom spline) are moved only
+by the between-frame terms of the spike branch (the spike loss, Eq. 17, and the spike-view
+flow term and its fit, engine.train.spike_flow). Those terms see one greyscale 80x60 view
+with shot noise, and bend the curves of Gaussians that never moved: on the demo capture
+(1000 fast steps, seed 0) 13.5k of 24.5k Gaussians had a residual above 1 % of the scene
+extent (mean 3.7 %: 16 cm) where RGB-only holds them all at zero, and the full model lost
+0.25 dB to RGB-only between RGB frames at the eval camera while it gained 0.37 dB at the RGB
+instants. Setting every residual back to zero after training put it +0.52 dB above RGB-only
+between frames (the bends cost the demo, whose motion 30 FPS samples smoothly), but on the
+``between`` scene (motion 30 FPS cannot sample) the same reset cost 1.2 dB: the bends are
+the spike branch's gain there. The HexPlane model has the same guard as a prior
+(``SpikeGuidance.static_prior``, ``spike_static_prior``); the trajectories had none.
+
+This switch (``quiet_curves``) holds at zero the segment-``k`` inner residuals (positions
+and rotations) of the Gaussians that, at both ends of segment ``k`` (RGB instants ``T_k``,
+``T_{k+1}``), project inside the spike view onto blocks where the spike stream did not
+change during interval ``k`` (:class:`engine.spike.change.SpikeChange`, dilated by
+``quiet_curves_dilate`` blocks): what the spike view saw there is still, so the curve between
+the two RGB instants is the smooth one the RGB frames give. Gaussians outside the spike view
+or over a change keep their bends. Applied after every optimiser step (a projection onto
+the constraint, also undoing the flow fit's changes there); the mask is recomputed when the
+Gaussian count changes and every :attr:`QuietCurves.REFRESH` steps (junctions move slowly).
+
+Measured (README "Quiet curves"; 1000 fast steps, seeds 0 / 1, full - RGB-only between RGB
+frames at the eval cameras, off -> on): demo -0.24 / -0.27 -> +0.30 / +0.24 dB, fast +0.13 /
++0.11 -> +0.20 / +0.43, ``between`` +1.53 / +1.26 -> +1.47 / +1.38 (moving pixels +2.49 / +2.15
+-> +2.28 / +2.15). Dilation 1 block: post hoc (``scripts/flatten_curves.py --quiet``) 2 / 1 / 0
+blocks gave the demo 21.74 / 21.95 / 22.05 dB and ``between`` 21.80 / 21.83 / 21.69 (0 clips
+the moving objects' edges). Cost: ~23 ms CPU per mask (36k Gaussians, 9 intervals), ~3 ms per
+step to apply it.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..scene.fine_deformation import project_to_grid
+from ..scene.model import TRAJ_MEANS, TRAJ_QUATS
+from .spike_guidance import spike_stream_info
+
+__all__ = ["quiet_segments", "inner_keep", "zero_inner", "QuietCurves", "quiet_curves_factory"]
+
+
+def quiet_segments(means: torch.Tensor, junctions: torch.Tensor, change, intervals, viewmat: torch.Tensor,
+                   K: torch.Tensor, width: int, height: int, dilate: int = 2) -> torch.Tensor:
+    """bool [N, F-1]: segment ``k`` of Gaussian ``i`` is quiet when its positions at both
+    junctions, ``means [N,3] + junctions[:, k]`` and ``+ junctions[:, k+1]`` (``junctions``
+    [N, F, 3]), project inside the spike view (``viewmat`` [4,4], ``K`` [3,3], ``width`` x
+    ``height``) onto no change of the spike interval ``intervals[k]`` (``change``:
+    :class:`SpikeChange`, its map dilated by ``dilate`` blocks; ``intervals[k]`` None: the
+    spike stream does not cover segment ``k``, never quiet)."""
+    n, f = junctions.shape[:2]
+    out = torch.zeros(n, max(0, f - 1), dtype=torch.bool, device=means.device)
+    if n == 0 or f < 2:
+        return out
+    grids, vis = [], []
+    for j in range(f):
+        gr, v = project_to_grid(means + junctions[:, j], viewmat, K, width, height)
+        grids.append(gr)
+        vis.append(v)
+    for k in range(f - 1):
+        if k >= len(intervals) or intervals[k] is None:
+            continue
+        still = [change.gate(int(intervals[k]), grids[j], dilate=dilate).to(means.device) <= 0 for j in (k, k + 1)]
+        out[:, k] = vis[k] & vis[k + 1] & still[0] & still[1]
+    return out
+
+
+def inner_keep(quiet: torch.Tensor, channels: int = 1) -> torch.Tensor:
+    """float [N, K, channels] (K = 3 (F-1) + 1), contiguous: 0 at the inner control points
+    ``3k+1, 3k+2`` of the rows where ``quiet`` [N, F-1] holds for segment ``k``, 1 elsewhere
+    (junctions always 1). Built once per mask: multiplying by it is one plain elementwise pass
+    (36k Gaussians x 28 columns: ~0.3 ms, against ~3 ms broadcast from one channel or ~6 ms
+    by boolean row indexing per segment)."""
+    n, s = quiet.shape
+    keep = torch.ones(n, 3 * s + 1, device=quiet.device)
+    inner = (~quiet).float()
+    keep[:, 1::3] = inner
+    keep[:, 2::3] = inner
+    return keep[..., None].expand(n, 3 * s + 1, int(channels)).contiguous()
+
+
+@torch.no_grad()
+def zero_inner(params: torch.Tensor, quiet: torch.Tensor, keep: torch.Tensor | None = None) -> None:
+    """Set the inner control points ``3k+1, 3k+2`` of ``params`` [N, K, C] to zero in the rows
+    where ``quiet`` [N, F-1] holds for segment ``k`` (in place; ``keep``: its
+    :func:`inner_keep`, when already built)."""
+    params.data.mul_(inner_keep(quiet) if keep is None else keep)
+
+
+class QuietCurves:
+    """Post-step hook of a run (see the module doc)."""
+
+    REFRESH = 10  # steps a quiet mask is reused while the Gaussian count is unchanged
+
+    def __init__(self, trainer, stream, change, rgb_times):
+        self.cfg = trainer.cfg
+        self.rgb_times = [float(t) for t in rgb_times]  # the change maps' intervals run between these
+        view = stream.view(0.0)
+        self.viewmat = torch.as_tensor(view.viewmat, dtype=torch.float32)
+        self.K = torch.as_tensor(stream.intrinsics.K, dtype=torch.float32)
+        self.size = (int(stream.width), int(stream.height))
+        self.change = change
+        # (step, N, quiet [N, F-1], {channels: inner_keep(quiet, channels)}, id of the curves' tensor)
+        self._mask: tuple | None = None
+        self.last: dict = {}
+
+    def intervals(self, knots) -> list:
+        """Per segment between ``knots``: the spike interval holding its midpoint, or None."""
+        out = []
+        for a, b in zip(knots[:-1], knots[1:]):
+            mid = 0.5 * (float(a) + float(b))
+            ks = [i for i in range(len(self.rgb_times) - 1) if self.rgb_times[i] <= mid < self.rgb_times[i + 1]]
+            out.append(ks[0] if ks and ks[0] < self.change.num_intervals else None)
+        return out
+
+    def mask(self, model, step: int) -> torch.Tensor:
+        g = model.gaussians
+        params = getattr(g, TRAJ_MEANS)
+        hit = self._mask
+        # keyed on the curves' tensor too: the budget probe steps a copy of the model through this hook
+        if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= self.REFRESH or step < hit[0]
+                or hit[4] != id(params)):
+            dev = params.device
+            quiet = quiet_segments(g.means.detach(), params.detach()[:, 0::3], self.change,
+                                   self.intervals(model.trajectory["knots"]), self.viewmat.to(dev),
+                                   self.K.to(dev), *self.size, dilate=int(self.cfg.quiet_curves_dilate))
+            self._mask = hit = (step, params.shape[0], quiet, {}, id(params))
+            self.last = {"step": int(step), "quiet_fraction": float(quiet.float().mean()) if quiet.numel() else 0.0}
+        return hit[2]
+
+    def __call__(self, tr, step, item, meta) -> None:
+        model = tr.model
+        if model is None or model.trajectory is None or not model.use_deformation:
+            return
+        quiet = self.mask(model, step)
+        keeps = self._mask[3]
+        g = model.gaussians
+        for params in (getattr(g, TRAJ_MEANS), getattr(g, TRAJ_QUATS)):
+            c = int(params.shape[-1])
+            if c not in keeps:
+                keeps[c] = inner_keep(quiet, c)
+            zero_inner(params, quiet, keeps[c])
+
+
+def quiet_curves_factory(trainer) -> list:
+    """Registers the :class:`QuietCurves` post-step hook for a (non rgb_only) run with
+    ``quiet_curves`` on, per-Gaussian trajectories and a calibrated spike stream whose spike
+    guidance exists (its change maps); adds no loss term. Listed after the spike-flow factory
+    so the hook runs after the flow fit."""
+    cfg = trainer.cfg
+    guid = getattr(trainer, "spike_guidance", None)
+    hooks = getattr(trainer, "post_step_hooks", None)
+    if not cfg.quiet_curves or guid is None or hooks is None or "trajectory" not in cfg.motion:
+        return []
+    info = spike_stream_info(trainer.capture)
+    stream = guid.stream
+    if info is None or stream is None or stream.c2w is None or stream.intrinsics is None:
+        return []
+    cache = guid.window_cache()
+    if cache is None:
+        return []
+    term = QuietCurves(trainer, stream, cache.change(int(cfg.spike_change_block)), cache.rgb_times)
+    trainer.quiet_curves = term
+    hooks.append(term)
+    return []

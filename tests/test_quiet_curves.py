@@ -1,0 +1,158 @@
+"""Quiet curves (engine.train.quiet_curves): no in-between bend where the spike view saw no change."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS
+from engine.spike.change import SpikeChange
+from engine.train.presets import get_preset
+from engine.train.quiet_curves import inner_keep, quiet_segments, zero_inner
+
+W, H = 16, 8  # spike view (px); 4 x 2 change blocks of 4 px
+
+
+def _change(changed_blocks):
+    """A SpikeChange with 2 intervals; ``changed_blocks`` [(interval, block row, block col)]."""
+    changed = np.zeros((2, H // 4, W // 4), bool)
+    for k, r, c in changed_blocks:
+        changed[k, r, c] = True
+    return SpikeChange(statistic=changed.astype(np.float32), changed=changed, threshold=0.5, sigma=0.1,
+                       block=4, shape=(H, W))
+
+
+def _points_at(px):
+    """World points 2 m in front of an identity camera (K: f = 10, centre (8, 4)) at pixels ``px``."""
+    K = torch.tensor([[10.0, 0, W / 2], [0, 10.0, H / 2], [0, 0, 1]])
+    uv = torch.as_tensor(px, dtype=torch.float32)
+    z = 2.0
+    pts = torch.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z,
+                       torch.full((len(uv),), z)], -1)
+    return pts, K
+
+
+def test_quiet_segments_follow_the_change_map_per_interval():
+    # block (row 0, col 3) = pixels x 12..16, y 0..4 changed in interval 1 only
+    ch = _change([(1, 0, 3)])
+    pts, K = _points_at([[2.0, 6.0], [14.0, 2.0], [30.0, 2.0]])  # quiet corner, the changing block, outside
+    pts = torch.cat([pts, torch.tensor([[0.0, 0.0, -1.0]])])  # behind the camera
+    junctions = torch.zeros(4, 3, 3)  # F = 3 instants: 2 segments, nothing moves at the junctions
+    q = quiet_segments(pts, junctions, ch, [0, 1], torch.eye(4), K, W, H, dilate=0)
+    assert q.shape == (4, 2)
+    assert q[0].tolist() == [True, True]  # never near a change
+    assert q[1].tolist() == [True, False]  # changes in interval 1 only
+    assert q[2].tolist() == [False, False] and q[3].tolist() == [False, False]  # the spike view cannot say
+    # dilation reaches the neighbouring block (pixel x 10 is in block col 2, next to col 3)
+    near, _ = _points_at([[10.0, 2.0]])
+    assert quiet_segments(near, torch.zeros(1, 3, 3), ch, [0, 1], torch.eye(4), K, W, H, dilate=0)[0, 1]
+    assert not quiet_segments(near, torch.zeros(1, 3, 3), ch, [0, 1], torch.eye(4), K, W, H, dilate=1)[0, 1]
+    # a segment whose end moves onto the changing block is not quiet; one not covered by spikes never is
+    moved = torch.zeros(1, 3, 3)
+    moved[0, 1] = pts[1] - pts[0]  # at the middle instant the Gaussian sits on the changing block
+    still = torch.zeros(1, 3, 3)
+    assert quiet_segments(pts[:1], still, ch, [1, None], torch.eye(4), K, W, H, dilate=0)[0].tolist() == [True, False]
+    assert quiet_segments(pts[:1], moved, ch, [1, None], torch.eye(4), K, W, H, dilate=0)[0].tolist() == [False, False]
+
+
+def test_zero_inner_clears_only_the_quiet_segments_inner_points():
+    p = torch.randn(3, 7, 3)  # F = 3 knots: K = 7 columns, inner 1, 2 (segment 0) and 4, 5 (segment 1)
+    before = p.clone()
+    quiet = torch.tensor([[True, False], [False, True], [False, False]])
+    zero_inner(p, quiet)
+    assert (p[0, 1:3] == 0).all() and torch.equal(p[0, 3:], before[0, 3:]) and torch.equal(p[0, 0], before[0, 0])
+    assert (p[1, 4:6] == 0).all() and torch.equal(p[1, :4], before[1, :4]) and torch.equal(p[1, 6], before[1, 6])
+    assert torch.equal(p[2], before[2])
+    again = before.clone()
+    zero_inner(again, quiet, inner_keep(quiet, 3))  # the hook's prebuilt, per-channel mask: the same
+    assert torch.equal(again, p) and inner_keep(quiet, 4).shape == (3, 7, 4)
+
+
+_TINY = {"iterations": 12, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
+         "densify_from": 2.0, "densify_until": 2.0, "between_colocated_p": 1.0, "time_curriculum": 0.0,
+         "spike_skip_static": False, "traj_carry": "velocity", "birth_error": 0.0}
+
+
+def _inner_norms(tr):
+    p = getattr(tr.model.gaussians, TRAJ_MEANS).detach()
+    inner = torch.stack([p[:, 3 * k + 1:3 * k + 3] for k in range((p.shape[1] - 1) // 3)], 1)  # [N, F-1, 2, 3]
+    return inner.norm(dim=-1).amax(-1)  # [N, F-1]
+
+
+@pytest.mark.slow
+def test_trainer_holds_quiet_curves_and_only_those(demo_capture):
+    """Real guided steps on the demo capture: with the switch, the segments the hook calls quiet
+    have zero inner residuals (positions and rotations) while others still bend; without it, the
+    spike terms bend quiet segments too (what the switch exists to stop)."""
+    from engine.io.capture import load_capture
+    from engine.train.trainer import Trainer
+
+    runs = {}
+    for on in (True, False):
+        tr = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "quiet_curves": on}), device="cpu")
+        assert hasattr(tr, "quiet_curves") == on
+        tr.init_model()
+        for step in range(_TINY["iterations"]):
+            tr.step(step)
+        runs[on] = tr
+    on, off = runs[True], runs[False]
+    used = on.quiet_curves._mask[2]  # the mask the last step's hook applied
+    assert 0.05 < float(used.float().mean()) < 0.95  # the demo's spike view: mostly still, not all
+    inner = _inner_norms(on)
+    assert float(inner[used].max()) == 0.0
+    q = getattr(on.model.gaussians, TRAJ_QUATS).detach()
+    for k in range(used.shape[1]):
+        assert (q[used[:, k], 3 * k + 1:3 * k + 3] == 0).all()
+    assert float(inner[~used].max()) > 0.0  # where the spike view changed, curves bend
+    # a copy of the model (the budget probe's) gets its own mask, not the run's cached one
+    import copy
+
+    probe = copy.deepcopy(on.model)
+    on.quiet_curves.mask(probe, _TINY["iterations"] - 1)
+    assert on.quiet_curves._mask[4] == id(getattr(probe.gaussians, TRAJ_MEANS))
+    # without the switch the spike terms bend segments that the hook would have held
+    off_quiet = on.quiet_curves.mask(off.model, 10 ** 6)
+    assert float(_inner_norms(off)[off_quiet].max()) > 0.0
+
+
+def test_switch_is_a_config_field_and_needs_the_spike_guidance():
+    import types
+
+    from engine.train.quiet_curves import quiet_curves_factory
+
+    assert get_preset("fast").quiet_curves and get_preset("fast").quiet_curves_dilate == 1  # on (README)
+    cfg = get_preset("fast", {"quiet_curves": True})
+    tr = types.SimpleNamespace(cfg=cfg, spike_guidance=None, post_step_hooks=[])
+    assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # rgb_only / no spikes: nothing
+    tr.cfg = get_preset("fast", {"quiet_curves": True, "motion": "hexplane"})
+    tr.spike_guidance = object()
+    assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # curves only
+
+
+def test_flatten_curves_script_zeroes_every_bend_and_keeps_the_junctions(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "flatten_curves.py"
+    spec = importlib.util.spec_from_file_location("flatten_curves", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text("{}")
+    curves, quats = torch.randn(5, 7, 3), torch.randn(5, 7, 4)
+    params = {"means": torch.randn(5, 3), TRAJ_MEANS: curves.clone(), TRAJ_QUATS: quats.clone()}
+    torch.save({"model": {"gaussians": {"params": params}, "trajectory": {"knots": [0.0, 0.1, 0.2]}}},
+               run / "checkpoint.pt")
+    assert mod.main([str(run), str(tmp_path / "flat")]) == 0
+    out = torch.load(tmp_path / "flat" / "checkpoint.pt", weights_only=False)["model"]["gaussians"]["params"]
+    for name, before in ((TRAJ_MEANS, curves), (TRAJ_QUATS, quats)):
+        assert (out[name][:, [1, 2, 4, 5]] == 0).all() and torch.equal(out[name][:, 0::3], before[:, 0::3])
+    assert (tmp_path / "flat" / "run.json").exists()
+    assert torch.equal(torch.load(run / "checkpoint.pt", weights_only=False)["model"]["gaussians"]["params"]
+                       [TRAJ_MEANS], curves)  # the run itself is untouched
+    del params[TRAJ_MEANS]
+    torch.save({"model": {"gaussians": {"params": params}, "trajectory": {"knots": [0.0, 0.1, 0.2]}}},
+               run / "checkpoint.pt")
+    with pytest.raises(SystemExit, match="no per-Gaussian trajectories"):
+        mod.main([str(run), str(tmp_path / "flat2")])
