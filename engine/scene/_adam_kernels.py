@@ -11,22 +11,14 @@ against torch's on first use and falls back to torch when they differ
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
 from ..numba_cache import install_cache_locator
+from ..numba_fma import fma32 as _fma32
 
 install_cache_locator(__name__)
 
 
-@intrinsic
-def _fma32(typingctx, a, b, c):
-    sig = types.float32(types.float32, types.float32, types.float32)
-
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-
-    return sig, codegen
 
 
 # Serial loops from index 0 (numba then drops its negative-index handling and LLVM

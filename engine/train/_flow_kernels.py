@@ -15,22 +15,14 @@ order of each output's sum is unchanged). ~46 % of an ``lk_flow`` was that pooli
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
 from ..numba_cache import install_cache_locator
+from ..numba_fma import fma32 as _fma32
 
 install_cache_locator(__name__)
 
 
-@intrinsic
-def _fma32(typingctx, a, b, c):
-    sig = types.float32(types.float32, types.float32, types.float32)
-
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-
-    return sig, codegen
 
 
 @njit(cache=True, nogil=True)
