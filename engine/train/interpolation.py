@@ -62,11 +62,16 @@ def warp(img: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
 _WARP_EXACT: bool | None = None
 
 
-def _fused_flow(*tensors) -> bool:
-    """The numba warp may take over: CPU float32 [B, C, H, W] tensors, no autograd, and
-    it equals ``F.grid_sample`` here."""
+def _on_kernels(*tensors) -> bool:
+    """The numba kernels may take over: CPU float32 [B, C, H, W] tensors without autograd
+    (the box filter's, the median's; the warp's also needs :func:`fused_warp_exact`)."""
     return (FUSED_BOX and all(t.device.type == "cpu" and t.dtype == torch.float32 and t.dim() == 4
-                              and not t.requires_grad for t in tensors) and fused_warp_exact())
+                              and not t.requires_grad for t in tensors) and KERNELS.load() is not None)
+
+
+def _fused_flow(*tensors) -> bool:
+    """The numba warp may take over: :func:`_on_kernels`, and it equals ``F.grid_sample`` here."""
+    return _on_kernels(*tensors) and fused_warp_exact()
 
 
 def fused_warp_exact() -> bool:
@@ -119,8 +124,7 @@ def _box(x: torch.Tensor, win: int) -> torch.Tensor:
     """Box mean over ``win x win`` (odd) with replicated borders, [B, C, H, W] -> same shape.
     On CPU float32 by :func:`engine.train._flow_kernels.box_replicate`: the same numbers
     as the torch pooling below, bit for bit (tests/test_flow_kernels.py)."""
-    if (FUSED_BOX and win % 2 == 1 and x.device.type == "cpu" and x.dtype == torch.float32
-            and x.dim() == 4 and not x.requires_grad and KERNELS.load() is not None):
+    if win % 2 == 1 and _on_kernels(x):
         x = x.contiguous()
         out = torch.empty_like(x)
         KERNELS.module.box_replicate(x.view(-1, *x.shape[-2:]).numpy(), win // 2,
@@ -136,8 +140,7 @@ def _box_torch(x: torch.Tensor, win: int) -> torch.Tensor:
 def _median3(x: torch.Tensor) -> torch.Tensor:
     """3x3 median filter per channel (replicate border). On CPU float32 by
     :func:`engine.train._flow_kernels.median3_replicate` (the same values: a selection)."""
-    if (FUSED_BOX and x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad
-            and KERNELS.load() is not None):
+    if _on_kernels(x):
         x = x.contiguous()
         out = torch.empty_like(x)
         KERNELS.module.median3_replicate(x.view(-1, *x.shape[-2:]).numpy(), out.view(-1, *x.shape[-2:]).numpy())
