@@ -31,7 +31,7 @@ if str(REPO) not in sys.path:
 from engine.io.capture import load_capture  # noqa: E402
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS  # noqa: E402
 from engine.spike.features import SpikeWindowCache  # noqa: E402
-from engine.train.quiet_curves import quiet_segments, zero_inner  # noqa: E402
+from engine.train.quiet_curves import quiet_segments, segment_intervals, zero_inner  # noqa: E402
 from engine.train.spike_guidance import spike_stream_info  # noqa: E402
 
 
@@ -46,11 +46,7 @@ def quiet_mask(capture, params: dict, knots, dilate: int, block: int = 4, k_sub:
     rgb_times = sorted({float(f.time) for f in capture.frames if f.camera == info.co_located_with})
     cache = SpikeWindowCache(stream, rgb_times, k_sub=k_sub)
     change = cache.change(block)
-    intervals = []
-    for a, b in zip(knots[:-1], knots[1:]):
-        mid = 0.5 * (a + b)
-        ks = [i for i in range(len(rgb_times) - 1) if rgb_times[i] <= mid < rgb_times[i + 1]]
-        intervals.append(ks[0] if ks else None)
+    intervals = segment_intervals(knots, rgb_times, change.num_intervals)  # as the hook picks them
     view = stream.view(0.0)
     curves = params[TRAJ_MEANS]
     return quiet_segments(params["means"].float(), curves[:, 0::3].float(), change, intervals,

@@ -40,7 +40,7 @@ from ..scene.fine_deformation import project_to_grid
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS
 from .spike_guidance import spike_stream_info
 
-__all__ = ["quiet_segments", "inner_keep", "zero_inner", "QuietCurves", "quiet_curves_factory"]
+__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "QuietCurves", "quiet_curves_factory"]
 
 
 def quiet_segments(means: torch.Tensor, junctions: torch.Tensor, change, intervals, viewmat: torch.Tensor,
@@ -65,6 +65,17 @@ def quiet_segments(means: torch.Tensor, junctions: torch.Tensor, change, interva
             continue
         still = [change.gate(int(intervals[k]), grids[j], dilate=dilate).to(means.device) <= 0 for j in (k, k + 1)]
         out[:, k] = vis[k] & vis[k + 1] & still[0] & still[1]
+    return out
+
+
+def segment_intervals(knots, rgb_times, num_intervals: int) -> list:
+    """Per curve segment between ``knots``: the spike interval ``i`` (between ``rgb_times[i]``
+    and ``rgb_times[i + 1]``, ``i < num_intervals``) holding the segment's midpoint, or None."""
+    out = []
+    for a, b in zip(knots[:-1], knots[1:]):
+        mid = 0.5 * (float(a) + float(b))
+        ks = [i for i in range(len(rgb_times) - 1) if rgb_times[i] <= mid < rgb_times[i + 1]]
+        out.append(ks[0] if ks and ks[0] < num_intervals else None)
     return out
 
 
@@ -108,13 +119,8 @@ class QuietCurves:
         self.last: dict = {}
 
     def intervals(self, knots) -> list:
-        """Per segment between ``knots``: the spike interval holding its midpoint, or None."""
-        out = []
-        for a, b in zip(knots[:-1], knots[1:]):
-            mid = 0.5 * (float(a) + float(b))
-            ks = [i for i in range(len(self.rgb_times) - 1) if self.rgb_times[i] <= mid < self.rgb_times[i + 1]]
-            out.append(ks[0] if ks and ks[0] < self.change.num_intervals else None)
-        return out
+        """Per segment between ``knots``: :func:`segment_intervals` of this run's spike stream."""
+        return segment_intervals(knots, self.rgb_times, self.change.num_intervals)
 
     def mask(self, model, step: int) -> torch.Tensor:
         g = model.gaussians
