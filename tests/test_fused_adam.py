@@ -114,3 +114,88 @@ def test_densification_keeps_working_with_the_fused_optimizer():
     g.optimizer.zero_grad()
     g.means.sum().backward()
     g.optimizer.step()
+
+
+# ---- the one-pass kernel (MKL's vmsSqrt called from numba, engine.numba_vml) -------------------
+
+def _one_pass_or_skip():
+    from engine import numba_vml
+
+    if not numba_vml.AVAILABLE:
+        pytest.skip("this torch exports no vmsSqrt (built without MKL): FusedAdam keeps two passes")
+    assert fused_adam.one_pass_exact(), "vmsSqrt is exported but the one-pass step differs from torch's Adam"
+
+
+def test_vml_sqrt_is_torch_sqrt_bit_for_bit():
+    _one_pass_or_skip()
+    assert fused_adam._sqrt_probe()  # subnormals .. inf, NaN, odd offsets and lengths
+    x = torch.rand(4099) * 10.0 ** torch.randint(-40, 38, (4099,)).float()
+    out = torch.empty_like(x)
+    fused_adam.KERNELS.module.vml_sqrt(x.numpy(), out.numpy())
+    assert torch.equal(out.view(torch.int32), torch.sqrt(x).view(torch.int32))
+
+
+@pytest.mark.parametrize("block", [7, 4096, None])
+def test_one_pass_is_torch_adam_bit_for_bit_across_block_edges(monkeypatch, block):
+    """Blocks of 7 elements split every parameter mid-row (MKL's scalar tail at every block);
+    4096 cuts the (20011, 19, 3) curve-shaped parameter into ~280 blocks; None: the default."""
+    _one_pass_or_skip()
+    if block is not None:
+        monkeypatch.setattr(fused_adam, "BLOCK", block)
+    calls = []
+    step = fused_adam.KERNELS.module.step
+    monkeypatch.setattr(fused_adam.KERNELS.module, "step", lambda *a: (calls.append(a[-1].size), step(*a)))
+    grads = _grads(6)
+    ref, o_ref = _run(torch.optim.Adam, grads)
+    fus, o_fus = _run(FusedAdam, grads)
+    assert calls and max(calls) <= (block or fused_adam.BLOCK)  # the one-pass kernel ran, in blocks
+    for a, b in zip(ref, fus):
+        assert torch.equal(a, b)
+        sa, sb = o_ref.state[a], o_fus.state[b]
+        assert torch.equal(sa["exp_avg"], sb["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sb["exp_avg_sq"])
+
+
+def test_one_pass_and_two_passes_agree_and_switch(monkeypatch):
+    _one_pass_or_skip()
+    grads = _grads(5, seed=3)
+    one, _ = _run(FusedAdam, grads)
+    monkeypatch.setattr(fused_adam, "ONE_PASS", False)
+    calls = []
+    step = fused_adam.KERNELS.module.step
+    monkeypatch.setattr(fused_adam.KERNELS.module, "step", lambda *a: (calls.append(1), step(*a)))
+    two, _ = _run(FusedAdam, grads)
+    assert calls == []  # ONE_PASS=False: the moments / torch.sqrt / update passes
+    assert all(torch.equal(a, b) for a, b in zip(one, two))
+
+
+def test_without_vmssqrt_the_two_passes_remain(monkeypatch):
+    from engine import numba_vml
+
+    monkeypatch.setattr(numba_vml, "AVAILABLE", False)
+    monkeypatch.setattr(fused_adam, "_ONE_PASS_EXACT", None)
+    assert fused_adam.one_pass_exact() is False
+    grads = _grads(3)
+    ref, _ = _run(torch.optim.Adam, grads)
+    fus, _ = _run(FusedAdam, grads)
+    assert all(torch.equal(a, b) for a, b in zip(ref, fus))
+
+
+def test_bench_adam_times_every_parameter_and_paths_agree():
+    from tools import bench_adam
+
+    ps = _params()
+    opt = FusedAdam(_groups(ps), lr=0.0, eps=1e-15)
+    for p, gr in zip(ps, _grads(1)[0]):
+        p.grad = gr
+    opt.step()
+    curve = ps[4]  # (20011, 19, 3): make its inner columns untouched, as in RGB-only training
+    curve.grad[:, 1:3] = 0
+    opt.state[curve]["exp_avg"][:, 1:3] = 0
+    opt.state[curve]["exp_avg_sq"][:, 1:3] = 0
+    rows = bench_adam.time_parameters(opt, repeats=1)
+    assert [r["name"] for r in rows] == [f"g{i}" for i in range(len(SIZES))]
+    assert all(r["same"] for r in rows)
+    assert all(r["ms"]["torch"] < float("inf") and r["ms"]["two-pass"] < float("inf") for r in rows)
+    big = rows[4]
+    assert big["numel"] == 20011 * 19 * 3 and big["zero"] >= 2 / 19 - 1e-6
+    assert "| **all** |" in bench_adam._table(rows)

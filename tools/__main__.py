@@ -17,6 +17,7 @@ COMMANDS = {
     "bench-raster": "bench_raster",
     "bench-step": "bench_step",
     "bench-kernels": "bench_kernels",
+    "bench-adam": "bench_adam",
     "bench-decode": "bench_decode",
     "import-graph": "import_graph",
     "compact-steps": "compact_steps",

@@ -292,6 +292,9 @@ VARIANTS = {
     "adam-torch": {"doc": "the Gaussians' optimizer steps with torch.optim.Adam's own (seven-pass) update, "
                           "as before FusedAdam", "hexplane_sampler": "auto",
                    "patches": {(fused_adam, "ENABLED"): False}},
+    "adam-twopass": {"doc": "FusedAdam in two numba passes with torch's sqrt between them (ONE_PASS=False), as "
+                            "before its one-pass kernel (same numbers)", "hexplane_sampler": "auto",
+                     "patches": {(fused_adam, "ONE_PASS"): False}},
     "nn-dense": {"doc": "hidden Gaussians' nearest carried neighbour by a dense torch.cdist, as before the grid "
                         "search", "hexplane_sampler": "auto", "patches": {(scene_flow, "DENSE_SEARCH"): True}},
     "traj-before": {"doc": "all three of traj-reference, adam-torch and nn-dense: the trajectory step as on "

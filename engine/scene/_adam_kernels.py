@@ -15,10 +15,9 @@ from numba import njit
 
 from ..numba_cache import install_cache_locator
 from ..numba_fma import fma32 as _fma32
+from ..numba_vml import vml_sqrt32 as _vml_sqrt32
 
 install_cache_locator(__name__)
-
-
 
 
 # Serial loops from index 0 (numba then drops its negative-index handling and LLVM
@@ -60,6 +59,60 @@ def update(p, m, v, root, bc2s, eps, neg_step):
     for i in range(p.size):
         sq = root[i] if v[i] != 0 else zero
         p[i] = p[i] + (neg_step * m[i]) / (sq / bc2s + eps)
+
+
+# ---- one pass: moments, torch's square root and update a block at a time --------------------
+# The two passes above with torch's ``sqrt`` between them stream every array from memory twice
+# (moments: g, m, v, the roots' inputs; update: p, m, v, the roots) and the roots once more:
+# ~60 bytes per float where Adam needs 28 (read p, g, m, v; write p, m, v). :func:`step` runs
+# the same three stages over blocks of ``buf.size`` elements, the square roots by the very
+# function torch's ``sqrt`` calls (MKL's ``vmsSqrt``, :mod:`engine.numba_vml`), so the update
+# reads m, v and the roots back from the cache, not from memory: same numbers, one pass.
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _step_block(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, root):
+    """:func:`moments`, ``vmsSqrt`` and :func:`update` over one block (slices from index 0:
+    the loops vectorise as the dense kernels')."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    if abs(w1) < np.float32(0.5):  # torch's lerp: two formulas around weight 0.5
+        for i in range(g.size):
+            gi = g[i]
+            m[i] = _fma32(w1, gi - m[i], m[i])
+            vi = _fma32(c2 * gi, gi, v[i] * b2)
+            v[i] = vi
+            root[i] = vi if vi != 0 else one
+    else:
+        w1m = w1 - one
+        for i in range(g.size):
+            gi = g[i]
+            m[i] = _fma32(w1m, gi - m[i], gi)
+            vi = _fma32(c2 * gi, gi, v[i] * b2)
+            v[i] = vi
+            root[i] = vi if vi != 0 else one
+    _vml_sqrt32(root, root)
+    for i in range(p.size):
+        sq = root[i] if v[i] != 0 else zero
+        p[i] = p[i] + (neg_step * m[i]) / (sq / bc2s + eps)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def step(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, buf):
+    """One Adam update in place (flat float32 ``p``, ``g``, ``m``, ``v``): :func:`moments`,
+    torch's ``sqrt`` and :func:`update`, ``buf.size`` elements at a time (``buf``: float32
+    scratch, the block's square roots)."""
+    n = p.size
+    b = buf.size
+    for s in range(0, n, b):
+        e = min(n, s + b)
+        _step_block(p[s:e], g[s:e], m[s:e], v[s:e], w1, b2, c2, bc2s, eps, neg_step, buf[:e - s])
+
+
+@njit(cache=True, nogil=True)
+def vml_sqrt(x, out):
+    """``out[:] = sqrt(x)`` by :mod:`engine.numba_vml` (the exactness check's probe)."""
+    _vml_sqrt32(x, out)
 
 
 # ---- selective (sparse) Adam: engine.scene.selective_adam ------------------------------------
