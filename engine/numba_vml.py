@@ -32,14 +32,17 @@ SYMBOL = "vmsSqrt"
 
 def _register() -> bool:
     """Put ``vmsSqrt`` (LP64: ``MKL_INT`` = int32, as torch's wheels) into LLVM's symbol table."""
-    path = os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so")
-    try:
-        lib = ctypes.CDLL(path)
-        fn = getattr(lib, SYMBOL)
-    except (OSError, AttributeError):
-        return False
-    llvm.add_symbol(SYMBOL, ctypes.cast(fn, ctypes.c_void_p).value)
-    return True
+    for name in ("libtorch_cpu.so", "torch_cpu.dll"):  # Linux, Windows (macOS wheels have no MKL)
+        path = os.path.join(os.path.dirname(torch.__file__), "lib", name)
+        if not os.path.exists(path):
+            continue
+        try:
+            fn = getattr(ctypes.CDLL(path), SYMBOL)
+        except (OSError, AttributeError):  # not exported: torch's sqrt is not reachable
+            return False
+        llvm.add_symbol(SYMBOL, ctypes.cast(fn, ctypes.c_void_p).value)
+        return True
+    return False
 
 
 AVAILABLE = _register()
