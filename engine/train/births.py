@@ -12,6 +12,18 @@ known, a Gaussian is born at the back-projected point with the frame's colour, a
 (static) curve and a temporal opacity centred on ``t`` (std ``birth_lifespan`` x the frame
 interval; the other Gaussians get an effectively infinite one, so they are unchanged).
 Training then moves, widens or fades it like any other parameter.
+
+Born Gaussians that move (``birth_motion``, issue 11 "ghost"): with a static curve, a
+Gaussian born at ``T_j`` sits at its ``T_j`` place at every time and only fades; where the
+carry cannot follow a fast object, the object between ``T_{j-1}`` and ``T_j`` is the
+cross-fade of the two instants' motionless copies (fast scene, eval camera, run of main
+6151c93: born Gaussians give 0.55 of the moving pixels' alpha; moving-pixel PSNR between
+frames 16.25 dB, 13.76 with their fade removed, 13.43 with them removed:
+``scripts/birth_share.py``). ``"lk"`` / ``"dis"`` give each born Gaussian its junction at ``T_{j-1}``
+(held before it) from the train cameras' optical flow ``T_j -> T_{j-1}`` (that method) lifted by the
+stereo depth at ``T_{j-1}`` (the carry run backwards, :func:`carry_by_flow`); those the flow
+cannot decide, and all of them with ``"nearest"``, take the displacement ``T_j -> T_{j-1}``
+of the nearest Gaussian alive at ``T_j`` within ``traj_carry_hidden`` x extent.
 """
 from __future__ import annotations
 
@@ -21,10 +33,20 @@ import numpy as np
 import torch
 
 from ..scene.gaussians import inverse_sigmoid, rgb_to_sh
-from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, view_tensors
-from .scene_flow import backproject_pixels, frame_image, instant_depth_priors
+from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, TRAJ_MEANS, temporal_opacity, view_tensors
+from .scene_flow import (
+    backproject_pixels,
+    carry_by_flow,
+    frame_image,
+    image_flow,
+    instant_depth_priors,
+    propagate_to_hidden,
+)
 
-__all__ = ["ALWAYS_LOG_SCALE", "birth_candidates", "ensure_temporal_opacity", "spawn_at_instant"]
+__all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "ensure_temporal_opacity", "spawn_at_instant",
+           "backward_displacement", "move_born_back"]
+
+BIRTH_MOTIONS = ("none", "lk", "dis", "nearest")  # lk / dis: optical flow method (scene_flow.image_flow)
 
 ALWAYS_LOG_SCALE = 30.0  # log std (s) of Gaussians not born at an instant: factor 1 at any t
 LR_TIME_CENTER = 5e-4    # s per step: a born Gaussian's centre can drift a few frames in 100 steps
@@ -106,4 +128,73 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     if model.static_mask is not None and model.static_mask.shape[0] == g.num_gaussians - m:
         model.static_mask = torch.cat([model.static_mask, torch.zeros(m, dtype=torch.bool, device=dev)])
     records.append({"birth_at": float(t), "born": int(m), "total": g.num_gaussians})
+    if cfg.birth_motion not in BIRTH_MOTIONS:
+        raise ValueError(f"unknown birth_motion {cfg.birth_motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
+    if cfg.birth_motion != "none":
+        records[-1].update(move_born_back(trainer, frames, knots, t, g.num_gaussians - m))
     return records[-1]
+
+
+def backward_displacement(born: np.ndarray, cams: list, others: np.ndarray, others_delta: np.ndarray,
+                          max_dist: float, use_flow: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
+    """Displacement ``T_j -> T_{j-1}`` [M, 3] of the Gaussians born at ``born`` [M, 3] (their
+    places at ``T_j``) and the bool [M] of those that got one, with how many the flow decided.
+
+    ``cams``: per train camera ``(view, flow [H, W, 2] from T_j to T_{j-1}, depth_j, ok_j,
+    depth_{j-1}, ok_{j-1})`` (:func:`carry_by_flow`; a visible surface point with no flow is
+    decided still). The rest take the displacement of the nearest of ``others`` [P, 3]
+    (Gaussians alive at ``T_j``, at their ``T_j`` places, with ``others_delta`` [P, 3])
+    within ``max_dist``."""
+    born = np.asarray(born, np.float32)
+    delta = np.zeros_like(born)
+    decided = np.zeros(len(born), dtype=bool)
+    for view, flow, d_a, ok_a, d_b, ok_b in (cams if use_flow else ()):
+        new, ok, still = carry_by_flow(born, view, flow, d_a, ok_a, d_b, ok_b, return_still=True)
+        ok &= ~decided
+        delta[ok] = new[ok] - born[ok]
+        decided |= ok | still
+    n_flow = int(decided.sum())
+    if max_dist > 0 and len(others) and not decided.all():
+        pos = np.concatenate([born, np.asarray(others, np.float32)])
+        d = np.concatenate([delta, np.asarray(others_delta, np.float32)])
+        mask = np.concatenate([decided, np.ones(len(others), dtype=bool)])
+        d, taken = propagate_to_hidden(pos, d, mask, max_dist)
+        delta[~decided] = d[:len(born)][~decided]
+        decided |= taken[:len(born)]
+    return delta, decided, n_flow
+
+
+def move_born_back(trainer, frames, knots, t: float, first: int) -> dict:
+    """Write the junctions before ``t`` of the Gaussians born at ``t`` (rows ``first:``) from
+    :func:`backward_displacement` (``birth_motion``, module docstring). Returns counts for
+    run.json's ``births`` record."""
+    j = int(np.argmin([abs(k - t) for k in knots]))
+    if j == 0:
+        return {"moved": 0}
+    cfg, model = trainer.cfg, trainer.model
+    g = model.gaussians
+    with torch.no_grad():
+        at_j = model.attributes(knots[j])["means"].detach().cpu().numpy()
+        at_i = model.attributes(knots[j - 1])["means"].detach().cpu().numpy()
+        alive = temporal_opacity(getattr(g, TIME_CENTER), getattr(g, TIME_LOG_SCALE), knots[j]).cpu().numpy() > 0.5
+    alive[first:] = False
+    cams = []
+    if cfg.birth_motion in ("lk", "dis"):
+        pri = instant_depth_priors(trainer, frames)
+        by_cam: dict = {}
+        for f in frames:
+            by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
+        for at in by_cam.values():
+            fa, fb = at.get(round(knots[j], 9)), at.get(round(knots[j - 1], 9))
+            if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
+                continue
+            flow = image_flow(frame_image(trainer, fa), frame_image(trainer, fb), cfg.birth_motion)
+            cams.append((trainer.capture.view(fa), flow, *pri[id(fa)], *pri[id(fb)]))
+    delta, decided, n_flow = backward_displacement(
+        at_j[first:], cams, at_j[alive], (at_i - at_j)[alive], cfg.traj_carry_hidden * trainer.extent)
+    tm = getattr(g, TRAJ_MEANS).data
+    idx = torch.from_numpy(first + np.nonzero(decided)[0]).to(tm.device)
+    d = torch.from_numpy(delta[decided]).to(tm)
+    for k in range(j):  # junction T_{j-1}, held before it (the born Gaussian has faded there)
+        tm[idx, 3 * k] = d
+    return {"moved": int(decided.sum()), "moved_by_flow": n_flow}
