@@ -146,7 +146,7 @@ def test_birth_motion_is_off_by_default_and_checked():
 @pytest.mark.slow  # ~1 min on a loaded 2-core machine (stereo and flow for every instant)
 def test_trainer_moves_born_gaussians_back_to_the_previous_instant(demo_capture, tmp_path):
     """birth_motion=lk: Gaussians born at a later instant start from the flow's displacement
-    at the knots before it (junctions held), recorded in run.json; none have a static curve."""
+    at the knot before it (junctions held), recorded in run.json (static curves without it)."""
     from engine.scene.model import TRAJ_MEANS, load_run
     from engine.train import train
 
@@ -158,7 +158,7 @@ def test_trainer_moves_born_gaussians_back_to_the_previous_instant(demo_capture,
     assert summary["status"] == "finished"
     rec = json.loads((tmp_path / "run" / "run.json").read_text())["births"]
     later = [r for r in rec if r["born"] > 0 and r["birth_at"] > 1e-6]
-    assert later and all("moved" in r for r in later) and sum(r["moved"] for r in later) > 0
+    assert later and all("moved_back" in r for r in later) and sum(r["moved_back"] for r in later) > 0
     model = load_run(tmp_path / "run").model
     g, knots = model.gaussians, torch.tensor(model.trajectory["knots"])
     centre = getattr(g, TIME_CENTER).detach()[:, 0]
@@ -166,4 +166,23 @@ def test_trainer_moves_born_gaussians_back_to_the_previous_instant(demo_capture,
     j = (centre[born][:, None] - knots[None]).abs().argmin(1)            # knot of each born Gaussian's birth
     before = getattr(g, TRAJ_MEANS).detach()[born][torch.arange(int(born.sum())), 3 * (j - 1)]
     # frozen curves: what the births wrote at T_{j-1} stays (static curves without birth_motion)
-    assert int((before.norm(dim=-1) > 1e-6).sum()) >= sum(r["moved"] for r in later) // 2
+    assert int((before.norm(dim=-1) > 1e-6).sum()) >= sum(r["moved_back"] for r in later) // 2
+
+
+def test_component_flow_finds_a_jump_of_an_objects_own_size():
+    """Issue 11 "ghost": a textured block that jumps 12 px right and 5 px up (more than its
+    own size) between frames gets that translation at every one of its pixels, zero elsewhere."""
+    from engine.train.births import component_flow
+
+    rng = np.random.default_rng(3)
+    bg = np.kron(rng.uniform(size=(12, 16, 3)), np.ones((4, 4, 1))).astype(np.float32)   # 48 x 64
+    obj = rng.uniform(size=(8, 8, 3)).astype(np.float32)
+    a, b = bg.copy(), bg.copy()
+    a[20:28, 30:38] = obj
+    b[15:23, 42:50] = obj
+    mask = np.zeros((48, 64), bool)
+    mask[20:28, 30:38] = True
+    mask[2, 2] = True                       # a speck under min_area: no flow
+    flow = component_flow(a, b, mask, radius=16)
+    np.testing.assert_array_equal(flow[20:28, 30:38], np.broadcast_to([12.0, -5.0], (8, 8, 2)))
+    assert not flow[~mask].any() and not flow[2, 2].any()
