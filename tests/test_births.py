@@ -100,3 +100,90 @@ def test_trainer_gives_birth_at_admitted_instants(demo_capture, tmp_path):
     near, far = scene.gaussians_at(t)["opacities"], scene.gaussians_at(t + 1.0)["opacities"]
     assert (far[born.numpy()] < near[born.numpy()]).all()   # born Gaussians fade away from their instant
     assert np.array_equal(far[~born.numpy()], near[~born.numpy()])
+
+
+def _flat_view():
+    from engine.cameras import Intrinsics, View, look_at_c2w
+    c2w = look_at_c2w((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0))
+    return View(c2w=c2w, intrinsics=Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), time=0.0)
+
+
+def test_born_gaussians_get_the_backward_flow_lifted_by_depth_and_the_rest_their_nearest_neighbour():
+    """Issue 11 "ghost": a Gaussian born at T_j on an object that moved 7 px right since T_{j-1}
+    must sit 7 px left at T_{j-1} (at the stereo depth there), not at its T_j place."""
+    from engine.cameras import project_points
+    from engine.train.births import backward_displacement
+    from engine.train.scene_flow import backproject_pixels
+
+    v = _flat_view()
+    d_j = np.full((60, 80), 5.0, np.float32)
+    d_i = np.full((60, 80), 4.5, np.float32)    # the surface was 0.5 m closer at T_{j-1}
+    ok = np.ones((60, 80), bool)
+    ok[:, 60:] = False                           # no stereo right of x = 60
+    flow = np.zeros((60, 80, 2), np.float32)
+    flow[..., 0] = -7.0                          # T_j -> T_{j-1}: 7 px to the left
+    born = backproject_pixels(v, np.array([[30.5, 30.5], [70.5, 30.5], [70.5, 10.5]]), np.array([5.0, 5.0, 5.0]))
+    others = born[1:2] + np.array([[0.0, 0.0, 0.05]])        # an alive Gaussian near the second one
+    others_delta = np.array([[-0.2, 0.0, 0.0]], np.float32)  # ... moved by its own curve
+    delta, decided, n_flow = backward_displacement(born, [(v, flow, d_j, ok, d_i, ok)], others, others_delta, 0.1)
+    assert decided.tolist() == [True, True, False] and n_flow == 1
+    uv, z = project_points(v, born[:1] + delta[:1])
+    np.testing.assert_allclose(uv, [[23.5, 30.5]], atol=1e-3)
+    np.testing.assert_allclose(z, [4.5], atol=1e-4)
+    np.testing.assert_allclose(delta[1], [-0.2, 0.0, 0.0], atol=1e-6)   # no stereo: its neighbour's motion
+    np.testing.assert_array_equal(delta[2], 0.0)                         # nothing near: stays put
+    # "nearest": the flow is not read
+    delta, decided, n_flow = backward_displacement(born, [(v, flow, d_j, ok, d_i, ok)], others, others_delta, 0.1,
+                                                   use_flow=False)
+    assert decided.tolist() == [False, True, False] and n_flow == 0
+
+
+def test_birth_motion_is_off_by_default_and_checked():
+    from engine.train.births import BIRTH_MOTIONS
+    assert get_preset("fast").birth_motion in BIRTH_MOTIONS
+
+
+@pytest.mark.slow  # ~1 min on a loaded 2-core machine (stereo and flow for every instant)
+def test_trainer_moves_born_gaussians_back_to_the_previous_instant(demo_capture, tmp_path):
+    """birth_motion=lk: Gaussians born at a later instant start from the flow's displacement
+    at the knot before it (junctions held), recorded in run.json (static curves without it)."""
+    from engine.scene.model import TRAJ_MEANS, load_run
+    from engine.train import train
+
+    over = {"iterations": 12, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
+            "densify_from": 0.3, "densify_until": 0.9, "densify_every": 3, "densify_grad_threshold": 0.0,
+            "time_curriculum": 0.5, "motion": "trajectory", "traj_carry": "flow", "birth_error": 0.05,
+            "birth_motion": "lk", "lr_traj": 1e-12, "lr_traj_final": 1e-12}
+    summary = train(demo_capture, tmp_path / "run", preset="fast", overrides=over, rgb_only=True, resume=False)
+    assert summary["status"] == "finished"
+    rec = json.loads((tmp_path / "run" / "run.json").read_text())["births"]
+    later = [r for r in rec if r["born"] > 0 and r["birth_at"] > 1e-6]
+    assert later and all("moved_back" in r for r in later) and sum(r["moved_back"] for r in later) > 0
+    model = load_run(tmp_path / "run").model
+    g, knots = model.gaussians, torch.tensor(model.trajectory["knots"])
+    centre = getattr(g, TIME_CENTER).detach()[:, 0]
+    born = (getattr(g, TIME_LOG_SCALE).detach()[:, 0] < 10) & (centre > knots[0] + 1e-3)
+    j = (centre[born][:, None] - knots[None]).abs().argmin(1)            # knot of each born Gaussian's birth
+    before = getattr(g, TRAJ_MEANS).detach()[born][torch.arange(int(born.sum())), 3 * (j - 1)]
+    # frozen curves: what the births wrote at T_{j-1} stays (all zero: static curves without
+    # birth_motion; "moved_back" also counts those decided still)
+    assert int((before.norm(dim=-1) > 1e-6).sum()) >= 100
+
+
+def test_component_flow_finds_a_jump_of_an_objects_own_size():
+    """Issue 11 "ghost": a textured block that jumps 12 px right and 5 px up (more than its
+    own size) between frames gets that translation at every one of its pixels, zero elsewhere."""
+    from engine.train.births import component_flow
+
+    rng = np.random.default_rng(3)
+    bg = np.kron(rng.uniform(size=(12, 16, 3)), np.ones((4, 4, 1))).astype(np.float32)   # 48 x 64
+    obj = rng.uniform(size=(8, 8, 3)).astype(np.float32)
+    a, b = bg.copy(), bg.copy()
+    a[20:28, 30:38] = obj
+    b[15:23, 42:50] = obj
+    mask = np.zeros((48, 64), bool)
+    mask[20:28, 30:38] = True
+    mask[2, 2] = True                       # a speck under min_area: no flow
+    flow = component_flow(a, b, mask, radius=16)
+    np.testing.assert_array_equal(flow[20:28, 30:38], np.broadcast_to([12.0, -5.0], (8, 8, 2)))
+    assert not flow[~mask].any() and not flow[2, 2].any()

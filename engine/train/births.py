@@ -12,6 +12,21 @@ known, a Gaussian is born at the back-projected point with the frame's colour, a
 (static) curve and a temporal opacity centred on ``t`` (std ``birth_lifespan`` x the frame
 interval; the other Gaussians get an effectively infinite one, so they are unchanged).
 Training then moves, widens or fades it like any other parameter.
+
+Born Gaussians that move (``birth_motion``, issue 11 "ghost"; off by default): with a static
+curve, a Gaussian born at ``T_j`` sits at its ``T_j`` place at every time and only fades;
+where the carry cannot follow a fast object, the object between ``T_{j-1}`` and ``T_j`` is
+the cross-fade of the two instants' motionless copies (fast scene, eval camera, run of main
+6151c93: born Gaussians give 0.55 of the moving pixels' alpha; moving-pixel PSNR between
+frames 16.25 dB, 13.76 with their fade removed, 13.43 with them removed:
+``scripts/birth_share.py``). With ``birth_motion`` each born Gaussian gets its junctions at
+``T_{j-1}`` (held before) and ``T_{j+1}`` (held after; the carry then leaves it alone) from
+:func:`backward_displacement`: the train cameras' correspondence ``T_j -> T_{j+-1}`` lifted by
+the stereo depth there (the carry's :func:`carry_by_flow`): ``"lk"`` / ``"dis"`` optical flow,
+``"match"`` one translation per born region (:func:`component_flow`); those it cannot decide,
+and all of them with ``"nearest"``, take the displacement of the nearest Gaussian alive at
+``T_j`` within ``traj_carry_hidden`` x extent. Measured at 1000 steps (README "Births that
+move"): none of them pays yet.
 """
 from __future__ import annotations
 
@@ -21,10 +36,20 @@ import numpy as np
 import torch
 
 from ..scene.gaussians import inverse_sigmoid, rgb_to_sh
-from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, view_tensors
-from .scene_flow import backproject_pixels, frame_image, instant_depth_priors
+from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, TRAJ_MEANS, temporal_opacity, view_tensors
+from .scene_flow import (
+    backproject_pixels,
+    carry_by_flow,
+    frame_image,
+    image_flow,
+    instant_depth_priors,
+    propagate_to_hidden,
+)
 
-__all__ = ["ALWAYS_LOG_SCALE", "birth_candidates", "ensure_temporal_opacity", "spawn_at_instant"]
+__all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "ensure_temporal_opacity", "spawn_at_instant",
+           "backward_displacement", "component_flow", "move_born"]
+
+BIRTH_MOTIONS = ("none", "lk", "dis", "match", "nearest")  # lk / dis: scene_flow.image_flow; match: component_flow
 
 ALWAYS_LOG_SCALE = 30.0  # log std (s) of Gaussians not born at an instant: factor 1 at any t
 LR_TIME_CENTER = 5e-4    # s per step: a born Gaussian's centre can drift a few frames in 100 steps
@@ -106,4 +131,126 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     if model.static_mask is not None and model.static_mask.shape[0] == g.num_gaussians - m:
         model.static_mask = torch.cat([model.static_mask, torch.zeros(m, dtype=torch.bool, device=dev)])
     records.append({"birth_at": float(t), "born": int(m), "total": g.num_gaussians})
+    if cfg.birth_motion not in BIRTH_MOTIONS:
+        raise ValueError(f"unknown birth_motion {cfg.birth_motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
+    if cfg.birth_motion != "none":
+        records[-1].update(move_born(trainer, frames, knots, t, g.num_gaussians - m))
     return records[-1]
+
+
+def backward_displacement(born: np.ndarray, cams: list, others: np.ndarray, others_delta: np.ndarray,
+                          max_dist: float, use_flow: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
+    """Displacement ``T_j -> T_{j-1}`` [M, 3] of the Gaussians born at ``born`` [M, 3] (their
+    places at ``T_j``) and the bool [M] of those that got one, with how many the flow decided.
+
+    ``cams``: per train camera ``(view, flow [H, W, 2] from T_j to T_{j-1}, depth_j, ok_j,
+    depth_{j-1}, ok_{j-1})`` (:func:`carry_by_flow`; a visible surface point with no flow is
+    decided still). The rest take the displacement of the nearest of ``others`` [P, 3]
+    (Gaussians alive at ``T_j``, at their ``T_j`` places, with ``others_delta`` [P, 3])
+    within ``max_dist``."""
+    born = np.asarray(born, np.float32)
+    delta = np.zeros_like(born)
+    decided = np.zeros(len(born), dtype=bool)
+    for view, flow, d_a, ok_a, d_b, ok_b in (cams if use_flow else ()):
+        new, ok, still = carry_by_flow(born, view, flow, d_a, ok_a, d_b, ok_b, return_still=True)
+        ok &= ~decided
+        delta[ok] = new[ok] - born[ok]
+        decided |= ok | still
+    n_flow = int(decided.sum())
+    if max_dist > 0 and len(others) and not decided.all():
+        pos = np.concatenate([born, np.asarray(others, np.float32)])
+        d = np.concatenate([delta, np.asarray(others_delta, np.float32)])
+        mask = np.concatenate([decided, np.ones(len(others), dtype=bool)])
+        d, taken = propagate_to_hidden(pos, d, mask, max_dist)
+        delta[~decided] = d[:len(born)][~decided]
+        decided |= taken[:len(born)]
+    return delta, decided, n_flow
+
+
+def component_flow(img_a: np.ndarray, img_b: np.ndarray, mask_a: np.ndarray, radius: int,
+                   min_area: int = 8) -> np.ndarray:
+    """Flow [H, W, 2] (``a(p) ~ b(p + flow(p))``) that is one translation per connected
+    component of ``mask_a`` [H, W] bool: where the component's pixels of ``img_a`` [H, W, 3]
+    match ``img_b`` best (masked sum of squared differences, OpenCV ``matchTemplate``) within
+    ``radius`` px; zero elsewhere. Why: optical flow misses motion of about an object's own
+    size per frame (fast scene, train pairs T1 -> T0, moving pixels: DIS median |flow| 1.0 px,
+    warp error 0.183 against 0.206 for zero flow; the ball moves ~20 px)."""
+    import cv2
+
+    a, b = np.ascontiguousarray(img_a[..., :3], np.float32), np.ascontiguousarray(img_b[..., :3], np.float32)
+    h, w = mask_a.shape
+    flow = np.zeros((h, w, 2), np.float32)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask_a.astype(np.uint8), connectivity=8)
+    for k in range(1, n):
+        x, y, bw, bh, area = (int(v) for v in stats[k])
+        if area < min_area:
+            continue
+        templ, m = a[y:y + bh, x:x + bw], (labels[y:y + bh, x:x + bw] == k).astype(np.float32)
+        x0, y0 = max(0, x - radius), max(0, y - radius)
+        search = b[y0:min(h, y + bh + radius), x0:min(w, x + bw + radius)]
+        if search.shape[0] < bh or search.shape[1] < bw:
+            continue
+        res = cv2.matchTemplate(search, templ, cv2.TM_SQDIFF, mask=np.repeat(m[..., None], 3, -1))
+        sx, sy = cv2.minMaxLoc(np.nan_to_num(res, nan=np.inf))[2]
+        flow[labels == k] = (x0 + sx - x, y0 + sy - y)
+    return flow
+
+
+def _born_mask(view, points: np.ndarray, shape, grow: int) -> np.ndarray:
+    """bool [H, W]: the pixels of ``points`` [M, 3] in ``view``, grown by ``grow`` px."""
+    import cv2
+
+    from ..cameras import project_points
+
+    uv, z = project_points(view, points)
+    h, w = shape
+    keep = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    mask = np.zeros((h, w), np.uint8)
+    mask[uv[keep, 1].astype(int), uv[keep, 0].astype(int)] = 1
+    return cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)).astype(bool)
+
+
+def move_born(trainer, frames, knots, t: float, first: int) -> dict:
+    """Write the junctions before and after ``t`` of the Gaussians born at ``t`` (rows
+    ``first:``) from :func:`backward_displacement` towards ``T_{j-1}`` (held before it) and
+    ``T_{j+1}`` (held after it; the carry leaves short-lived Gaussians alone when
+    ``birth_motion`` is on) (``birth_motion``, module docstring). Returns counts for run.json's
+    ``births`` record."""
+    j = int(np.argmin([abs(k - t) for k in knots]))
+    cfg, model = trainer.cfg, trainer.model
+    g = model.gaussians
+    tm = getattr(g, TRAJ_MEANS).data
+    pri = instant_depth_priors(trainer, frames) if cfg.birth_motion != "nearest" else {}
+    by_cam: dict = {}
+    for f in frames:
+        by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
+    with torch.no_grad():
+        at_j = model.attributes(knots[j])["means"].detach().cpu().numpy()
+        alive = temporal_opacity(getattr(g, TIME_CENTER), getattr(g, TIME_LOG_SCALE), knots[j]).cpu().numpy() > 0.5
+    alive[first:] = False
+    out = {}
+    for side, i in (("back", j - 1), ("ahead", j + 1)):
+        if not 0 <= i < len(knots):
+            continue
+        with torch.no_grad():
+            at_i = model.attributes(knots[i])["means"].detach().cpu().numpy()
+        cams = []
+        for at in by_cam.values():
+            fa, fb = at.get(round(knots[j], 9)), at.get(round(knots[i], 9))
+            if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
+                continue
+            img_a, img_b, view = frame_image(trainer, fa), frame_image(trainer, fb), trainer.capture.view(fa)
+            if cfg.birth_motion == "match":
+                mask = _born_mask(view, at_j[first:], img_a.shape[:2], int(cfg.birth_stride))
+                flow = component_flow(img_a, img_b, mask, int(round(cfg.birth_match_radius * img_a.shape[1])))
+            else:
+                flow = image_flow(img_a, img_b, cfg.birth_motion)
+            cams.append((view, flow, *pri[id(fa)], *pri[id(fb)]))
+        delta, decided, n_flow = backward_displacement(
+            at_j[first:], cams, at_j[alive], (at_i - at_j)[alive], cfg.traj_carry_hidden * trainer.extent)
+        idx = torch.from_numpy(first + np.nonzero(decided)[0]).to(tm.device)
+        d = torch.from_numpy(delta[decided]).to(tm)
+        for k in (range(i + 1) if i < j else range(i, len(knots))):
+            tm[idx, 3 * k] = d
+        out.update({f"moved_{side}": int(decided.sum()), f"by_flow_{side}": n_flow})
+    return out

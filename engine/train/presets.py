@@ -97,6 +97,11 @@ class TrainConfig:
     birth_max: int = 2000             # most Gaussians born per frame
     birth_lifespan: float = 0.5       # temporal std at birth, x the RGB frame interval
     birth_opacity: float = 0.5
+    # born Gaussians' motion before their instant: none (static curve) | lk / dis (the train
+    # cameras' optical flow T_j -> T_j-1 by that method + stereo) | nearest (the nearest alive
+    # Gaussian's) | match (component_flow: one translation per born region); births.py
+    birth_motion: str = "none"
+    birth_match_radius: float = 0.25  # x image width: search radius of birth_motion=match
     traj_inner_weight: float = 1.0    # mean squared inner-point residual / extent^2 (between-frame losses move them)
     rigidity_weight: float = 0.0      # Luiten et al. local rigidity (rigid + rot + iso over kNN) / extent; 0: off
     rigidity_k: int = 8               # neighbours of the rigidity prior
