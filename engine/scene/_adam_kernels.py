@@ -70,31 +70,13 @@ def update(p, m, v, root, bc2s, eps, neg_step):
 # reads m, v and the roots back from the cache, not from memory: same numbers, one pass.
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _step_block(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, root):
     """:func:`moments`, ``vmsSqrt`` and :func:`update` over one block (slices from index 0:
-    the loops vectorise as the dense kernels')."""
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    if abs(w1) < np.float32(0.5):  # torch's lerp: two formulas around weight 0.5
-        for i in range(g.size):
-            gi = g[i]
-            m[i] = _fma32(w1, gi - m[i], m[i])
-            vi = _fma32(c2 * gi, gi, v[i] * b2)
-            v[i] = vi
-            root[i] = vi if vi != 0 else one
-    else:
-        w1m = w1 - one
-        for i in range(g.size):
-            gi = g[i]
-            m[i] = _fma32(w1m, gi - m[i], gi)
-            vi = _fma32(c2 * gi, gi, v[i] * b2)
-            v[i] = vi
-            root[i] = vi if vi != 0 else one
+    the loops vectorise as the dense kernels'; ``root`` holds the block's square roots)."""
+    moments(g, m, v, w1, b2, c2, root)
     _vml_sqrt32(root, root)
-    for i in range(p.size):
-        sq = root[i] if v[i] != 0 else zero
-        p[i] = p[i] + (neg_step * m[i]) / (sq / bc2s + eps)
+    update(p, m, v, root, bc2s, eps, neg_step)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
