@@ -20,7 +20,15 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from engine.evaluate.metrics import is_interframe, motion_masks, psnr
 from engine.io.capture import load_capture
-from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE, TRAJ_MEANS, load_run, view_tensors
+from engine.scene.model import (
+    ALWAYS_LOG_SCALE,
+    TIME_CENTER,
+    TIME_LOG_SCALE,
+    TRAJ_MEANS,
+    born_mask,
+    load_run,
+    view_tensors,
+)
 
 
 def _render(model, vt, t, keep=None, no_fade=False):
@@ -28,7 +36,7 @@ def _render(model, vt, t, keep=None, no_fade=False):
     saved = {}
     if no_fade and TIME_CENTER in g.extra_lrs:
         saved[TIME_LOG_SCALE] = getattr(g, TIME_LOG_SCALE).data.clone()
-        getattr(g, TIME_LOG_SCALE).data.fill_(30.0)
+        getattr(g, TIME_LOG_SCALE).data.fill_(ALWAYS_LOG_SCALE)
     if keep is not None:
         saved["opacity_logits"] = g.opacity_logits.data.clone()
         g.opacity_logits.data[~keep] = -30.0
@@ -46,8 +54,7 @@ def main(runs):
         sc = load_run(run)
         cap = load_capture(sc.info["capture"])
         model, g = sc.model, sc.model.gaussians
-        born = (getattr(g, TIME_LOG_SCALE)[:, 0] < 10.0) if TIME_CENTER in g.extra_lrs else torch.zeros(
-            g.num_gaussians, dtype=torch.bool)
+        born = born_mask(g)
         print(f"{run}: {g.num_gaussians} Gaussians, {int(born.sum())} born")
         if TRAJ_MEANS in g.extra_lrs:
             off = getattr(g, TRAJ_MEANS).detach().norm(dim=-1).mean(-1)  # [N] mean |offset| over control points

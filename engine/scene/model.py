@@ -33,6 +33,16 @@ TRAJ_MEANS, TRAJ_QUATS = "traj_means", "traj_quats"
 # [N, 1] centre (capture seconds) and log standard deviation; only Gaussians born at an
 # admitted instant (engine.train.births) have a short life, the rest get exp(30) s
 TIME_CENTER, TIME_LOG_SCALE = "time_center", "time_log_scale"
+ALWAYS_LOG_SCALE = 30.0  # log std (s) of Gaussians not born at an instant: factor 1 at any t
+BORN_LOG_SCALE_BELOW = 10.0  # a log std under this (e^10 s) marks a Gaussian born at an instant
+
+
+def born_mask(gaussians) -> torch.Tensor:
+    """bool [N]: the Gaussians born at an admitted instant (a temporal log std under
+    :data:`BORN_LOG_SCALE_BELOW`); all False when no Gaussian has a temporal opacity."""
+    if TIME_LOG_SCALE not in gaussians.extra_lrs:
+        return torch.zeros(gaussians.num_gaussians, dtype=torch.bool, device=gaussians.means.device)
+    return getattr(gaussians, TIME_LOG_SCALE).detach()[:, 0] < BORN_LOG_SCALE_BELOW
 
 
 def temporal_opacity(center: torch.Tensor, log_scale: torch.Tensor, t: float) -> torch.Tensor:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ..scene.gaussians import inverse_sigmoid, rgb_to_sh
-from ..scene.model import TIME_CENTER, TIME_LOG_SCALE, TRAJ_MEANS, temporal_opacity, view_tensors
+from ..scene.model import ALWAYS_LOG_SCALE, TIME_CENTER, TIME_LOG_SCALE, TRAJ_MEANS, temporal_opacity, view_tensors
 from .scene_flow import (
     backproject_pixels,
     carry_by_flow,
@@ -51,7 +51,6 @@ __all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "ensure_temp
 
 BIRTH_MOTIONS = ("none", "lk", "dis", "match", "nearest")  # lk / dis: scene_flow.image_flow; match: component_flow
 
-ALWAYS_LOG_SCALE = 30.0  # log std (s) of Gaussians not born at an instant: factor 1 at any t
 LR_TIME_CENTER = 5e-4    # s per step: a born Gaussian's centre can drift a few frames in 100 steps
 LR_TIME_LOG_SCALE = 1e-2
 
@@ -84,6 +83,8 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     record ``{"birth_at", "born", "total"}``, also appended to ``trainer.birth_info`` (run.json's
     ``births``)."""
     cfg, model = trainer.cfg, trainer.model
+    if cfg.birth_motion not in BIRTH_MOTIONS:  # before the model changes
+        raise ValueError(f"unknown birth_motion {cfg.birth_motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
     g = model.gaussians
     pri = instant_depth_priors(trainer, frames)
     knots = model.trajectory["knots"]  # births follow the carry, which only curves have
@@ -131,8 +132,6 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     if model.static_mask is not None and model.static_mask.shape[0] == g.num_gaussians - m:
         model.static_mask = torch.cat([model.static_mask, torch.zeros(m, dtype=torch.bool, device=dev)])
     records.append({"birth_at": float(t), "born": int(m), "total": g.num_gaussians})
-    if cfg.birth_motion not in BIRTH_MOTIONS:
-        raise ValueError(f"unknown birth_motion {cfg.birth_motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
     if cfg.birth_motion != "none":
         records[-1].update(move_born(trainer, frames, knots, t, g.num_gaussians - m))
     return records[-1]

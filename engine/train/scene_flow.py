@@ -23,7 +23,7 @@ import torch
 
 from ..cameras import View, project_points
 from ..geometry.depth_priors import stereo_depth_priors
-from ..scene.model import TIME_LOG_SCALE, TRAJ_MEANS
+from ..scene.model import TRAJ_MEANS, born_mask
 from .interpolation import lk_flow
 from .nearest import nearest_within
 
@@ -258,8 +258,8 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
         delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, trainer.cfg.traj_carry_hidden * trainer.extent)
         todo &= ~(taken & (np.abs(delta).sum(1) > 0))
     carried = ~todo
-    if trainer.cfg.birth_motion != "none" and TIME_LOG_SCALE in g.extra_lrs:  # births.move_born moved those
-        carried &= (getattr(g, TIME_LOG_SCALE).detach()[:, 0] >= 10.0).cpu().numpy()
+    if trainer.cfg.birth_motion != "none":  # births.move_born moved those
+        carried &= ~born_mask(g).cpu().numpy()
     if carried.any():
         tm = getattr(g, TRAJ_MEANS).data
         idx = torch.from_numpy(np.nonzero(carried)[0]).to(tm.device)
