@@ -222,6 +222,27 @@ def test_background_and_no_depth():
 
 
 @NEEDS_NUMBA
+def test_fused_background_and_depth_match_reference_with_background_grads():
+    """The cpu path blends the background and divides the expected depth inside its one
+    autograd node (``finish_image`` / ``finish_grads``); a background that requires grad
+    goes through torch instead. Images, depths and every gradient, the background's
+    included, against the dense reference, with depth on and a background per camera."""
+    sc = make_scene(N=60, C=2, seed=15)
+    out = {}
+    for backend in ("reference", "cpu"):
+        for learn in (False, True):
+            bg = torch.tensor([[0.2, 0.5, 0.9], [1.0, 0.0, 0.3]], requires_grad=learn)
+            r = render(sc, backend, backgrounds=bg)
+            if learn:
+                r["grads"]["bg"] = bg.grad
+            out[backend, learn] = r
+    for learn in (False, True):
+        assert_images_close(out["cpu", learn], out["reference", learn])
+        assert_grads_close(out["cpu", learn]["grads"], out["reference", learn]["grads"])
+    assert out["cpu", True]["grads"]["bg"].abs().sum() > 0
+
+
+@NEEDS_NUMBA
 @pytest.mark.parametrize("alpha_max", [0.99, 0.999])
 def test_alpha_max_and_opaque_stack(alpha_max):
     """Opaque Gaussians stacked in depth: alpha clamp, transmittance stop, clamped grads."""

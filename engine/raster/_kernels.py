@@ -783,6 +783,75 @@ def pack(means2d, conics, opac, feats, ids, packed):
         packed[k, 9] = feats[g, 3]
 
 
+@njit(parallel=True, cache=True)
+def pack_split(means2d, conics, opac, rgb, z, n_per_cam, ids, packed):
+    """``pack`` for ``rasterization``'s fused path: the features come as rgb [G,3] and
+    depth z [G] (G = C * N) and the opacities once per Gaussian, opac [N], not per camera
+    (no torch concatenation or expansion, and none of their backward)."""
+    for k in prange(ids.shape[0]):
+        g = ids[k]
+        packed[k, 0] = means2d[g, 0]
+        packed[k, 1] = means2d[g, 1]
+        packed[k, 2] = conics[g, 0]
+        packed[k, 3] = conics[g, 1]
+        packed[k, 4] = conics[g, 2]
+        packed[k, 5] = opac[g % n_per_cam]
+        packed[k, 6] = rgb[g, 0]
+        packed[k, 7] = rgb[g, 1]
+        packed[k, 8] = rgb[g, 2]
+        packed[k, 9] = z[g]
+
+
+@njit(cache=True, nogil=True)
+def finish_image(out_feat, final_t, bg, depth_eps, out_rgb, out_depth):
+    """After ``rasterize_fwd``: out_rgb [C,H,W,3] = colours over the background bg [C,3]
+    (c + T bg), out_depth [C,H,W,1] = the expected depth (sum w z) / alpha where
+    alpha > depth_eps, else 0 (alpha = 1 - T, the float32 value ``out_alpha`` holds)."""
+    C, H, W, _ = out_feat.shape
+    for c in range(C):
+        b0 = bg[c, 0]
+        b1 = bg[c, 1]
+        b2 = bg[c, 2]
+        for y in range(H):
+            for x in range(W):
+                t = final_t[c, y, x]
+                out_rgb[c, y, x, 0] = out_feat[c, y, x, 0] + t * b0
+                out_rgb[c, y, x, 1] = out_feat[c, y, x, 1] + t * b1
+                out_rgb[c, y, x, 2] = out_feat[c, y, x, 2] + t * b2
+                a = F1 - t
+                out_depth[c, y, x, 0] = out_feat[c, y, x, 3] / a if a > depth_eps else F0
+
+
+@njit(cache=True, nogil=True)
+def finish_grads(v_rgb, v_alpha, v_depth, out_depth, final_t, bg, depth_eps, v_feat, v_alpha_raw):
+    """Gradients of ``finish_image`` for ``rasterize_bwd``: v_rgb [C,H,W,3], v_alpha [C,H,W],
+    v_depth [C,H,W] w.r.t. its outputs (out_depth [C,H,W,1] its depth) -> v_feat
+    [C,H,W,4] and v_alpha_raw [C,H,W] w.r.t. the raw sums and alpha. d (c + (1 - alpha) bg)
+    / d alpha = -bg; d (s / alpha) = ds / alpha - (s / alpha) dalpha / alpha."""
+    C, H, W = final_t.shape
+    for c in range(C):
+        b0 = bg[c, 0]
+        b1 = bg[c, 1]
+        b2 = bg[c, 2]
+        for y in range(H):
+            for x in range(W):
+                g0 = v_rgb[c, y, x, 0]
+                g1 = v_rgb[c, y, x, 1]
+                g2 = v_rgb[c, y, x, 2]
+                v_feat[c, y, x, 0] = g0
+                v_feat[c, y, x, 1] = g1
+                v_feat[c, y, x, 2] = g2
+                va = v_alpha[c, y, x] - (g0 * b0 + g1 * b1 + g2 * b2)
+                a = F1 - final_t[c, y, x]
+                if a > depth_eps:
+                    gd = v_depth[c, y, x] / a
+                    v_feat[c, y, x, 3] = gd
+                    va -= gd * out_depth[c, y, x, 0]
+                else:
+                    v_feat[c, y, x, 3] = F0
+                v_alpha_raw[c, y, x] = va
+
+
 @njit(cache=True, nogil=True)
 def scatter_grads(ids, v_isect, v_gauss):
     """v_gauss[ids[k]] += v_isect[k] (v_gauss [G, 6+D], zero-filled). Serial: a parallel
