@@ -19,11 +19,11 @@ def capture(tmp_path_factory):
 
 
 def test_step_profile_charges_every_part_and_restores_the_patches(capture):
-    before = (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward)
+    before = (scene_model.rasterization, raster_cpu._RasterizeFused.backward, DeformationField.forward)
     prof, counts = bench_step.profile_runs(capture, 12, overrides={"init": "ply", "static_fraction": 0.25,
                                                                            "motion": "hexplane"},
                                            spike=False)
-    assert (scene_model.rasterization, raster_cpu._RasterizeToPixels.backward, DeformationField.forward) == before
+    assert (scene_model.rasterization, raster_cpu._RasterizeFused.backward, DeformationField.forward) == before
     static, deform = prof.table("static"), prof.table("rgb_deform")
     assert static["steps"] == 2 and deform["steps"] == 8  # 12 steps less the two set-up steps
     for tab in (static, deform):

@@ -145,7 +145,8 @@ class StepProfiler:
     def __enter__(self):
 
         self._wrap(scene_model, "rasterization", "raster_fwd")  # Model4D.render's name for it
-        for cls in (raster_cpu._RasterizeToPixels, raster_cpu._Project, raster_cpu._ShCombine):
+        for cls in (raster_cpu._RasterizeFused, raster_cpu._RasterizeToPixels, raster_cpu._Project,
+                    raster_cpu._ShCombine):
             self._wrap(cls, "backward", "raster_bwd", static=True)
         for cls in (fd.FineDeformation, fd.SpikeTextureEncoder, fd.SpikeFineEncoder):
             self._wrap(cls, "forward", "fine_fwd")

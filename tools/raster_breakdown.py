@@ -6,8 +6,7 @@ of the measurement: wall time and the process's CPU time over all its threads, s
 ``cpu / wall`` says how well a stage uses the numba threads (2 on this machine: a perfectly
 parallel stage on idle cores shows ~2, a serial one 1; under load both shrink). "torch
 glue" is what is left of the whole forward+backward: the torch ops around the kernels
-(colour/depth features, casts, the expected-depth division, autograd bookkeeping, the
-loss) and Python overhead.
+(colours, casts, autograd bookkeeping, the loss) and Python overhead.
 """
 from __future__ import annotations
 
@@ -27,8 +26,10 @@ STAGES = [
     ("cpu", "bin_gaussians", "binning (all)", None),
     ("cpu", "depth_order", "depth sort", "binning (all)"),
     ("kernels", "bin_gaussians", "tile lists", "binning (all)"),
-    ("kernels", "pack", "pack", None),
+    ("kernels", "pack_split", "pack", None),
     ("kernels", "rasterize_fwd", "composite fwd", None),
+    ("kernels", "finish_image", "background + depth fwd", None),
+    ("kernels", "finish_grads", "background + depth bwd", None),
     ("kernels", "rasterize_bwd", "composite bwd", None),
     ("kernels", "scatter_grads", "gradient scatter", None),
     ("kernels", "project_bwd", "projection bwd", None),

@@ -1,6 +1,8 @@
 """The fast CPU compositor: numba tile binning + compositing with a hand-derived backward.
 
-``composite_tiles`` has the same signature and results as ``reference.composite_dense``.
+``composite_tiles`` has the same signature and results as ``reference.composite_dense``;
+``rasterize_fused`` is what ``rasterization`` runs (compositing, background and expected
+depth in one autograd node).
 numba is imported lazily; ``available()`` says whether it can be used.
 """
 from __future__ import annotations
@@ -104,6 +106,102 @@ class _RasterizeToPixels(torch.autograd.Function):
         vg = torch.from_numpy(v_gauss).reshape(C, N, n_grad)
         return (vg[..., 0:2], vg[..., 2:5], vg[..., 5], vg[..., k.N_GRAD:],
                 None, None, None, None, None)
+
+
+class _RasterizeFused(torch.autograd.Function):
+    """``rasterization``'s compositing in one autograd node: means2d [C,N,2], conics
+    [C,N,3], opacities [N], rgb [C,N,3], z [C,N] (float32) -> colours over the background
+    [C,H,W,3], alphas [C,H,W,1] and expected depth [C,H,W,1] (0 where alpha <= depth_eps).
+    The feature concatenation, the per-camera opacity expansion, the background blend, the
+    depth division and the output slicing ran as ~10 torch ops and their autograd nodes
+    around the kernels; here they are two per-pixel loops and a gather (``pack_split``,
+    ``finish_image``, ``finish_grads``)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, rgb, z, binning, bg, width, height, tile_size,
+                alpha_max, depth_eps):
+        k = _load()
+        C, N = z.shape
+        offsets, ids, spans, tiles_x, tiles_y = binning
+        out_feat = np.zeros((C, height, width, k.N_FEAT), np.float32)
+        out_alpha = np.zeros((C, height, width), np.float32)
+        final_t = np.ones((C, height, width), np.float32)
+        last_i = np.full((C, height, width), -1, np.int32)
+        packed = np.empty((ids.shape[0], 10), np.float32)
+        if ids.shape[0] > 0:
+            k.pack_split(_np(means2d).reshape(C * N, 2), _np(conics).reshape(C * N, 3),
+                         _np(opacities), _np(rgb).reshape(C * N, 3), _np(z).reshape(C * N), N,
+                         ids, packed)
+            k.rasterize_fwd(packed, spans, offsets, C, height, width, tile_size, tiles_x,
+                            tiles_y, float(alpha_max), out_feat, out_alpha, final_t, last_i)
+        out_rgb = np.empty((C, height, width, 3), np.float32)
+        out_depth = np.empty((C, height, width, 1), np.float32)
+        k.finish_image(out_feat, final_t, bg, depth_eps, out_rgb, out_depth)
+        ctx.packed = packed
+        ctx.state = (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, out_depth.copy(), bg,
+                     width, height, tile_size, float(alpha_max), depth_eps, C, N)
+        return (torch.from_numpy(out_rgb), torch.from_numpy(out_alpha)[..., None],
+                torch.from_numpy(out_depth))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, v_rgb, v_alpha, v_depth):
+        k = _load()
+        (offsets, ids, spans, tiles_x, tiles_y, final_t, last_i, out_depth, bg, width, height,
+         tile_size, alpha_max, depth_eps, C, N) = ctx.state
+        M = ids.shape[0]
+        v_gauss = np.zeros((C * N, k.N_GRAD + k.N_FEAT), np.float32)
+        if M > 0:
+            hw = (C, height, width)
+            zeros = np.zeros
+            g_rgb = zeros(hw + (3,), np.float32) if v_rgb is None else _np(v_rgb.float())
+            g_a = zeros(hw, np.float32) if v_alpha is None else _np(v_alpha.float()).reshape(hw)
+            g_d = zeros(hw, np.float32) if v_depth is None else _np(v_depth.float()).reshape(hw)
+            v_feat = np.empty(hw + (k.N_FEAT,), np.float32)
+            v_alpha_raw = np.empty(hw, np.float32)
+            k.finish_grads(g_rgb, g_a, g_d, out_depth, final_t, bg, depth_eps, v_feat, v_alpha_raw)
+            v_isect = np.empty((M, k.N_GRAD + k.N_FEAT), np.float32)  # the kernels write every row
+            k.rasterize_bwd(ctx.packed, spans, offsets, C, height, width, tile_size, tiles_x,
+                            tiles_y, alpha_max, final_t, last_i, v_feat, v_alpha_raw, v_isect)
+            k.scatter_grads(ids, v_isect, v_gauss)
+        vg = torch.from_numpy(v_gauss).reshape(C, N, k.N_GRAD + k.N_FEAT)
+        g = k.N_GRAD
+        return (vg[..., 0:2], vg[..., 2:5], vg[..., 5].sum(0), vg[..., g:g + 3], vg[..., g + 3],
+                None, None, None, None, None, None, None)
+
+
+def rasterize_fused(means2d, conics, opacities, rgb, z, radii_xy, width: int, height: int,
+                    backgrounds=None, alpha_max: float = 0.99, tile_size: int = 8,
+                    depth_eps: float = 1e-6):
+    """Colours over ``backgrounds`` [C,3] (black if None) [C,H,W,3], alphas [C,H,W,1] and
+    expected depth [C,H,W,1] of C cameras: means2d [C,N,2], conics [C,N,3], opacities [N]
+    (shared by the cameras), rgb [C,N,3], z [C,N] depths (composited, and the depth order),
+    radii_xy [C,N,2]. Same results as ``composite_tiles`` of [rgb, z] followed by the
+    background blend and the division by alpha, in one autograd node. A background that
+    requires grad is blended by torch (its gradient is not computed by the kernels)."""
+    if tile_size > 255:
+        raise ValueError("tile_size must be <= 255")
+    f32 = torch.float32
+    dt = rgb.dtype
+    C = z.shape[0]
+    bg_torch = None
+    bg = np.zeros((C, 3), np.float32)
+    if backgrounds is not None:
+        b = torch.as_tensor(backgrounds)
+        if b.requires_grad:
+            bg_torch = b
+        else:
+            bg = np.ascontiguousarray(
+                np.broadcast_to(_np(b.to(f32)).reshape(-1, 3), (C, 3)), np.float32)
+    binning = bin_gaussians(means2d, conics, opacities[None].expand(C, -1), radii_xy, z,
+                            width, height, tile_size)
+    img, alphas, depth = _RasterizeFused.apply(
+        means2d.to(f32), conics.to(f32), opacities.to(f32), rgb.to(f32), z.to(f32), binning,
+        bg, width, height, tile_size, alpha_max, np.float32(depth_eps))
+    img, alphas, depth = img.to(dt), alphas.to(dt), depth.to(dt)
+    if bg_torch is not None:
+        img = img + (1.0 - alphas) * bg_torch.to(dt).reshape(-1, 3).expand(C, 3)[:, None, None, :]
+    return img, alphas, depth
 
 
 class _Project(torch.autograd.Function):
