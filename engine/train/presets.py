@@ -97,6 +97,10 @@ class TrainConfig:
     birth_max: int = 2000             # most Gaussians born per frame
     birth_lifespan: float = 0.5       # temporal std at birth, x the RGB frame interval
     birth_opacity: float = 0.5
+    # temporal std (x the frame interval) of born Gaussians whose pixel's colour a neighbouring RGB
+    # instant repeats (births.unchanged_pixels: disoccluded static surface, which should not fade;
+    # an occluder in front hides it); 0: off, every born Gaussian gets birth_lifespan
+    birth_static_lifespan: float = 0.0
     # born Gaussians' motion before their instant: none (static curve) | lk / dis (the train
     # cameras' optical flow T_j -> T_j-1 by that method + stereo) | nearest (the nearest alive
     # Gaussian's) | match (component_flow: one translation per born region); births.py
