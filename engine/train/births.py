@@ -30,8 +30,6 @@ move"): none of them pays yet.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
@@ -46,8 +44,8 @@ from .scene_flow import (
     propagate_to_hidden,
 )
 
-__all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "unchanged_pixels", "ensure_temporal_opacity", "spawn_at_instant",
-           "backward_displacement", "component_flow", "move_born"]
+__all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "unchanged_pixels", "ensure_temporal_opacity",
+           "spawn_at_instant", "backward_displacement", "component_flow", "move_born"]
 
 BIRTH_MOTIONS = ("none", "lk", "dis", "match", "nearest")  # lk / dis: scene_flow.image_flow; match: component_flow
 
