@@ -187,3 +187,60 @@ def test_component_flow_finds_a_jump_of_an_objects_own_size():
     flow = component_flow(a, b, mask, radius=16)
     np.testing.assert_array_equal(flow[20:28, 30:38], np.broadcast_to([12.0, -5.0], (8, 8, 2)))
     assert not flow[~mask].any() and not flow[2, 2].any()
+
+
+def test_unchanged_pixels_are_those_a_neighbouring_instant_repeats():
+    from engine.train.births import unchanged_pixels
+
+    img = np.zeros((4, 5, 3), np.float32)
+    img[1, :] = 0.8
+    before, after = img.copy(), img.copy()
+    before[1, 0] = 0.0                        # changed since the instant before only: still static
+    before[1, 1] = after[1, 1] = 0.3          # changed on both sides: a moving surface
+    rows, cols = np.array([1, 1, 1, 0]), np.array([0, 1, 2, 0])
+    np.testing.assert_array_equal(unchanged_pixels(img, [before, after], rows, cols, 0.15), [True, False, True, True])
+    np.testing.assert_array_equal(unchanged_pixels(img, [before], rows, cols, 0.15), [False, False, True, True])
+    assert not unchanged_pixels(img, [], rows, cols, 0.15).any()
+
+
+@pytest.mark.parametrize("static_life", [0.0, 4.0])
+def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life):
+    """birth_static_lifespan: a born Gaussian whose pixel shows the same colour at a neighbouring
+    RGB instant (a disoccluded static wall) gets that temporal std; one on a patch seen only at
+    its instant (a moving object) keeps birth_lifespan. Off (0): every one gets birth_lifespan."""
+    from types import SimpleNamespace
+
+    from engine.cameras import View
+    from engine.scene.gaussians import rgb_to_sh
+    from engine.train.births import spawn_at_instant
+
+    knots = [0.0, 0.1, 0.2]
+    model = trajectory_model(knots, 10, centre=(0.0, -50.0, 0.0))  # behind the camera: renders black
+    view0 = _flat_view()
+    H, W = view0.intrinsics.height, view0.intrinsics.width
+    wall = np.zeros((H, W, 3), np.float32)
+    wall[:, : W // 2] = 0.7                               # static: the same at every instant
+    images = {t: wall.copy() for t in knots}
+    images[0.1][20:30, 50:60] = 0.9                       # moving: only at 0.1
+    frames = [SimpleNamespace(camera="L", time=t) for t in knots]
+    cfg = get_preset("fast").replace(birth_error=0.15, birth_stride=2, birth_max=100000, birth_lifespan=0.5,
+                                     birth_static_lifespan=static_life, birth_motion="none")
+    depth, ok = np.full((H, W), 3.0, np.float32), np.ones((H, W), bool)
+    trainer = SimpleNamespace(
+        cfg=cfg, model=model, seed=0, device="cpu",
+        capture=SimpleNamespace(view=lambda f: View(view0.intrinsics, view0.c2w, time=f.time)),
+        _stereo_priors={id(f): (depth, ok) for f in frames},
+        _item_images={("L", round(t, 9)): torch.from_numpy(images[t])[None] for t in knots})
+    rec = spawn_at_instant(trainer, frames, 0.1)
+    g = model.gaussians
+    born = rec["born"]
+    assert born == (H // 2) * (W // 4) + 5 * 5            # the wall's grid pixels + the patch's
+    std = torch.exp(getattr(g, TIME_LOG_SCALE).detach()[-born:, 0]).numpy() / 0.1
+    on_patch = (g.sh_dc.detach()[-born:, 0, 0] > float(rgb_to_sh(torch.tensor(0.8)))).numpy()  # colour 0.9
+    if static_life == 0:
+        np.testing.assert_allclose(std, 0.5, rtol=1e-5)
+        assert "static" not in rec
+    else:
+        np.testing.assert_allclose(std[on_patch], 0.5, rtol=1e-5)
+        np.testing.assert_allclose(std[~on_patch], 4.0, rtol=1e-5)
+        assert rec["static"] == born - 25
