@@ -230,6 +230,16 @@ class TrainConfig:
     quiet_curves_dilate: int = 1
     baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img
     baseline_per_interval: int = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
+    # how the full model (and the baselines) treat the synthetic frames (issue 11, engine.train.baselines):
+    # "all": their instants are RGB instants too (trajectory knots, scene-flow carries, births, the spike
+    # branch's intervals) -- paper Table 1's "train on them as if they were real"; "real": knots and the
+    # spike branch stay at the capture's RGB instants and the synthetic frames only supervise the curves
+    # between them (a frame loss at between-frame instants, like the spike loss)
+    baseline_instants: str = "all"
+    baseline_weight: float = 1.0  # frame-loss weight (L1, D-SSIM, block L1) of a synthetic frame
+    # > 0: synthetic pixels where both source flows fail the forward-backward check by more than this
+    # many pixels (at the sampled location) carry no frame loss (the render is its own target there)
+    baseline_mask_px: float = 0.0
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
