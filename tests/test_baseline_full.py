@@ -2,6 +2,7 @@
 frame-loss weight, and the forward-backward flow mask of flow-interpolated frames."""
 from __future__ import annotations
 
+import dataclasses
 import types
 
 import numpy as np
@@ -49,6 +50,8 @@ def test_inconsistency_is_small_for_a_shift_and_large_where_a_patch_appears():
 
 
 def test_interp_frames_carry_a_trusted_map_only_when_asked(cap):
+    first = sorted(f.time for f in cap.frames if f.camera == "rgb0")[:2]  # one interval
+    cap = dataclasses.replace(cap, frames=[f for f in cap.frames if f.time <= first[1]])
     plain = baseline_frames(cap, "interp-flow", per_interval=2, cameras=["rgb0"])
     assert all(f.trusted is None for f in plain)
     masked = baseline_frames(cap, "interp-flow", per_interval=2, cameras=["rgb0"], mask_px=1.0)
@@ -58,23 +61,23 @@ def test_interp_frames_carry_a_trusted_map_only_when_asked(cap):
         assert m.trusted.dtype == bool and m.trusted.shape == m.image.shape[:2]
     share = np.mean([m.trusted.mean() for m in masked])
     assert 0.3 < share < 1.0  # the demo's moving objects fail the check somewhere, the backdrop passes
-    loose = baseline_frames(cap, "interp-flow", per_interval=2, cameras=["rgb0"], mask_px=1e6)
-    assert all(f.trusted.all() for f in loose)
+    assert all(f.knot for f in masked)
     with pytest.raises(ValueError, match="mask_px"):
         baseline_frames(cap, "interp-flow", per_interval=1, mask_px=-1.0)
 
 
 def test_item_fields_say_knot_weight_and_mask(cap):
     real = cap.frames[0]
-    syn = baseline_frames(cap, "interp-flow", per_interval=1, cameras=["rgb0"], mask_px=1.0)[0]
-    cfg = get_preset("fast", {"baseline_instants": "real", "baseline_weight": 0.25})
+    syn = baseline_frames(cap, "interp-flow", per_interval=1, cameras=["rgb0"], mask_px=1.0, knots=False)[0]
+    cfg = get_preset("fast", {"baseline_weight": 0.25})
     assert frame_item_fields(real, cfg, "cpu") == {"synthetic": False, "knot": True}
     f = frame_item_fields(syn, cfg, "cpu")
     assert f["synthetic"] and not f["knot"] and f["loss_scale"] == 0.25
     assert f["trusted"].shape == (1, *syn.image.shape[:2], 1) and f["trusted"].dtype == torch.bool
-    assert frame_item_fields(syn, get_preset("fast"), "cpu")["knot"]  # "all": the Table 1 baseline as before
-    with pytest.raises(ValueError, match="baseline_instants"):
-        frame_item_fields(real, get_preset("fast", {"baseline_instants": "some"}), "cpu")
+    syn.knot = True  # "all": the Table 1 baseline as before
+    assert frame_item_fields(syn, cfg, "cpu")["knot"]
+    with pytest.raises(ValueError, match="instants"):
+        with_baseline(cap, "repeat", instants="some")
 
 
 def test_frame_loss_ignores_untrusted_pixels_and_scales_synthetic_frames():
@@ -95,13 +98,17 @@ def test_frame_loss_ignores_untrusted_pixels_and_scales_synthetic_frames():
     assert torch.allclose(_dssim(half), 0.5 * _dssim(plain))
 
 
-def test_real_instants_keep_the_knots_at_the_rgb_frames(cap):
+def test_real_instants_keep_the_knots_and_stereo_at_the_rgb_frames(cap):
+    from engine.geometry.stereo import pair_instants
     from engine.train.trainer import Trainer
 
-    aug = with_baseline(cap, "interp-linear", per_interval=3)
     rgb_times = sorted({round(float(f.time), 9) for f in cap.frames if f.role == "train"})
-    real = Trainer(aug, get_preset("fast", {"baseline_instants": "real"}), device="cpu")
+    real_cap = with_baseline(cap, "interp-linear", per_interval=3, instants="real")
+    real = Trainer(real_cap, get_preset("fast", {"baseline_instants": "real"}), device="cpu")
     assert real.frame_times == rgb_times
-    assert sum(it["synthetic"] for it in real.items) == len(aug.frames) - len(cap.frames)
-    every = Trainer(aug, get_preset("fast"), device="cpu")
+    assert sum(it["synthetic"] for it in real.items) == len(real_cap.frames) - len(cap.frames)
+    assert len(pair_instants(real_cap, ["rgb0", "rgb1"])[2]) == len(rgb_times)  # no stereo on synthetic frames
+    every_cap = with_baseline(cap, "interp-linear", per_interval=3)
+    assert len(pair_instants(every_cap, ["rgb0", "rgb1"])[2]) == 4 * (len(rgb_times) - 1) + 1
+    every = Trainer(every_cap, get_preset("fast"), device="cpu")
     assert len(every.frame_times) == 4 * (len(rgb_times) - 1) + 1

@@ -55,6 +55,9 @@ class SyntheticFrame:
     extra: dict = field(default_factory=dict)
     # bool [H, W] or None: pixels the frame loss may use (``baseline_frames(mask_px=...)``)
     trusted: np.ndarray | None = None
+    # False: its instant is no RGB instant (no trajectory knot, carry, birth, spike interval or
+    # stereo pair: ``baseline_frames(knots=False)``, TrainConfig.baseline_instants="real")
+    knot: bool = True
 
     def load_rgb(self, background=None) -> np.ndarray:
         return self.image
@@ -148,14 +151,15 @@ def _pairs(frames):
 
 def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, sensor=None,
                     spike_method: str = "tfp", colour: str = "reinhard", window: int = 64,
-                    mask_px: float = 0.0) -> list[SyntheticFrame]:
+                    mask_px: float = 0.0, knots: bool = True) -> list[SyntheticFrame]:
     """Synthetic in-between frames for the baseline ``kind`` (see :data:`KINDS`).
 
     ``cameras``: training cameras to synthesise for (default: all training cameras; for
     ``spike2img``, the cameras co-located with a spike stream). ``sensor``: the spike
     sensor model (default: :func:`engine.spike.render.estimate_sensor`). ``mask_px`` > 0
     (``interp-flow`` only): each frame's ``trusted`` map leaves out the pixels whose
-    :func:`engine.train.interpolation.interpolation_inconsistency` exceeds it."""
+    :func:`engine.train.interpolation.interpolation_inconsistency` exceeds it. ``knots``
+    False: the frames' ``knot`` is False (their instants are not RGB instants)."""
     if kind not in KINDS:
         raise ValueError(f"unknown baseline {kind!r}; choose from {', '.join(KINDS)}")
     if mask_px < 0:
@@ -210,14 +214,21 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
                     img = _colourise(_upsample(gray, h, w), ref, colour)
                 out.append(SyntheticFrame(np.ascontiguousarray(img, dtype=np.float32), cam, float(t),
                                           np.array(fa.c2w),
-                                          fa.intrinsics, "train", None, {"synthetic": kind}, trusted))
+                                          fa.intrinsics, "train", None, {"synthetic": kind}, trusted, bool(knots)))
     return out
 
 
-def with_baseline(capture, kind: str | None, **kw):
+INSTANTS = ("all", "real")
+
+
+def with_baseline(capture, kind: str | None, *, instants: str = "all", **kw):
     """A copy of ``capture`` whose ``frames`` also hold the baseline's synthetic frames
-    (``kind`` None: the capture itself)."""
+    (``kind`` None: the capture itself). ``instants`` (TrainConfig.baseline_instants): "all"
+    -- their instants are RGB instants too (paper Table 1: trained on as if real); "real" --
+    they are not (``knot`` False): only the frame loss sees them."""
     if not kind:
         return capture
-    extra = baseline_frames(capture, kind, **kw)
+    if instants not in INSTANTS:
+        raise ValueError(f"baseline instants must be one of {', '.join(INSTANTS)} (got {instants!r})")
+    extra = baseline_frames(capture, kind, knots=instants == "all", **kw)
     return dataclasses.replace(capture, frames=list(capture.frames) + extra)

@@ -22,20 +22,15 @@ from .presets import TrainConfig
 
 __all__ = ["LossTerm", "StepContext", "default_loss_terms", "frame_item_fields"]
 
-BASELINE_INSTANTS = ("all", "real")
-
-
 def frame_item_fields(frame, cfg: TrainConfig, device) -> dict:
     """The trainer item's fields that say how a train frame is supervised: ``synthetic``
     (a baseline's generated frame, engine.train.baselines), ``knot`` (its instant is an RGB
-    instant: trajectory knot, scene-flow carry, spike intervals; ``cfg.baseline_instants``),
-    and for synthetic frames ``loss_scale`` (``cfg.baseline_weight``) and ``trusted``
-    (bool [1, H, W, 1] of the pixels the frame loss uses, or absent: all)."""
-    if cfg.baseline_instants not in BASELINE_INSTANTS:
-        raise ValueError(f"baseline_instants must be one of {', '.join(BASELINE_INSTANTS)} "
-                         f"(got {cfg.baseline_instants!r})")
+    instant: trajectory knot, scene-flow carry, spike intervals; the frame's ``knot``, from
+    ``cfg.baseline_instants``), and for synthetic frames ``loss_scale``
+    (``cfg.baseline_weight``) and ``trusted`` (bool [1, H, W, 1] of the pixels the frame loss
+    uses, or absent: all)."""
     synthetic = bool(getattr(frame, "extra", {}).get("synthetic"))
-    out = {"synthetic": synthetic, "knot": not synthetic or cfg.baseline_instants == "all"}
+    out = {"synthetic": synthetic, "knot": bool(getattr(frame, "knot", True))}
     if synthetic:
         out["loss_scale"] = float(cfg.baseline_weight)
         trusted = getattr(frame, "trusted", None)
