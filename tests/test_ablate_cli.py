@@ -35,6 +35,9 @@ def test_registered_and_variants_cover_tables():
     assert ablate.VARIANTS["rgb-only"][0] is True and ablate.VARIANTS["full"][0] is False
     assert {ablate.VARIANTS[v][1].get("baseline") for v in ("rgb+repeat", "rgb+interp", "rgb+spike2img")} == \
         {"repeat", "interp-flow", "spike2img"}
+    fi_rgb, fi = ablate.VARIANTS["full+interp"][:2]
+    assert not fi_rgb and fi["baseline"] == "interp-flow" and fi["baseline_instants"] == "real"
+    assert ablate.VARIANTS["rgb+interp-real"][0] and ablate.VARIANTS["rgb+interp"][1].get("baseline_instants") is None
     assert ablate.parse_variants("full, rgb-only") == ["full", "rgb-only"]
     with pytest.raises(SystemExit):
         ablate.parse_variants("full,bogus")

@@ -58,6 +58,13 @@ VARIANTS: dict[str, tuple[bool, dict, str]] = {
     "rgb-hexplane": (True, {"motion": "hexplane"}, "RGB only, HexPlane field"),
     "rgb+repeat": (True, {"baseline": "repeat"}, "RGB-only + Repeat"),
     "rgb+interp": (True, {"baseline": "interp-flow"}, "RGB-only + Interpolate (flow)"),
+    # issue 11: the interpolated frames supervise only between the RGB instants (no knots, carries,
+    # births or stereo at their instants: baseline_instants="real"); full+interp also masks the pixels
+    # that fail the forward-backward flow check (README "Flow-interpolated frames in the full model")
+    "rgb+interp-real": (True, {"baseline": "interp-flow", "baseline_instants": "real"},
+                        "RGB-only + Interpolate (flow), knots at the RGB instants only"),
+    "full+interp": (False, {"fine_deformation": True, "baseline": "interp-flow", "baseline_instants": "real",
+                            "baseline_mask_px": 1.0}, "full + flow-interpolated frames between the RGB instants"),
     "rgb+spike2img": (True, {"baseline": "spike2img"}, "RGB-only + Spike2img + colour"),
 }
 

@@ -33,7 +33,7 @@ from ..cameras import View
 from ..colour import linear_to_srgb, luminance, srgb_to_linear
 from ..spike.render import estimate_sensor
 from ..spike.simulate import tfi, tfp
-from .interpolation import flow_interpolate
+from .interpolation import flow_consistency, flow_interpolate, interpolation_inconsistency
 
 __all__ = ["KINDS", "SyntheticFrame", "baseline_frames", "with_baseline", "reinhard_transfer",
            "spike_to_gray", "rgb_to_lab_reinhard", "lab_reinhard_to_rgb"]
@@ -53,6 +53,11 @@ class SyntheticFrame:
     role: str = "train"
     path: Path | None = None
     extra: dict = field(default_factory=dict)
+    # bool [H, W] or None: pixels the frame loss may use (``baseline_frames(mask_px=...)``)
+    trusted: np.ndarray | None = None
+    # False: its instant is no RGB instant (no trajectory knot, carry, birth, spike interval or
+    # stereo pair: ``baseline_frames(knots=False)``, TrainConfig.baseline_instants="real")
+    knot: bool = True
 
     def load_rgb(self, background=None) -> np.ndarray:
         return self.image
@@ -145,14 +150,20 @@ def _pairs(frames):
 
 
 def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, sensor=None,
-                    spike_method: str = "tfp", colour: str = "reinhard", window: int = 64) -> list[SyntheticFrame]:
+                    spike_method: str = "tfp", colour: str = "reinhard", window: int = 64,
+                    mask_px: float = 0.0, knots: bool = True) -> list[SyntheticFrame]:
     """Synthetic in-between frames for the baseline ``kind`` (see :data:`KINDS`).
 
     ``cameras``: training cameras to synthesise for (default: all training cameras; for
     ``spike2img``, the cameras co-located with a spike stream). ``sensor``: the spike
-    sensor model (default: :func:`engine.spike.render.estimate_sensor`)."""
+    sensor model (default: :func:`engine.spike.render.estimate_sensor`). ``mask_px`` > 0
+    (``interp-flow`` only): each frame's ``trusted`` map leaves out the pixels whose
+    :func:`engine.train.interpolation.interpolation_inconsistency` exceeds it. ``knots``
+    False: the frames' ``knot`` is False (their instants are not RGB instants)."""
     if kind not in KINDS:
         raise ValueError(f"unknown baseline {kind!r}; choose from {', '.join(KINDS)}")
+    if mask_px < 0:
+        raise ValueError(f"baseline mask_px must be >= 0 (got {mask_px})")
     by_cam: dict[str, list] = {}
     for f in capture.frames:
         if getattr(f, "role", "train") == "train" and not getattr(f, "extra", {}).get("synthetic"):
@@ -178,18 +189,22 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
                 sens = sensor
         for fa, fb in pairs:
             a_img, b_img = fa.load_rgb(), fb.load_rgb()
-            flows = None
+            flows = cons = None
             for j in range(1, per_interval + 1):
                 eps = j / (per_interval + 1)
                 t = fa.time + eps * (fb.time - fa.time)
+                trusted = None
                 if kind == "repeat":
                     img = a_img
                 elif kind == "interp-linear":
                     img = (1 - eps) * a_img + eps * b_img
                 elif kind == "interp-flow":
                     res, flows = flow_interpolate(torch.as_tensor(a_img), torch.as_tensor(b_img), eps,
-                                                  flows=flows, return_flows=True)
+                                                  flows=flows, return_flows=True, consistency=cons)
                     img = res.clamp(0, 1).numpy()
+                    if mask_px > 0:
+                        cons = flow_consistency(*flows) if cons is None else cons
+                        trusted = (interpolation_inconsistency(flows, eps, cons)[0, 0] <= mask_px).numpy()
                 else:
                     if not (stream.t0 <= t < stream.t_end):
                         continue
@@ -199,14 +214,21 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
                     img = _colourise(_upsample(gray, h, w), ref, colour)
                 out.append(SyntheticFrame(np.ascontiguousarray(img, dtype=np.float32), cam, float(t),
                                           np.array(fa.c2w),
-                                          fa.intrinsics, "train", None, {"synthetic": kind}))
+                                          fa.intrinsics, "train", None, {"synthetic": kind}, trusted, bool(knots)))
     return out
 
 
-def with_baseline(capture, kind: str | None, **kw):
+INSTANTS = ("all", "real")
+
+
+def with_baseline(capture, kind: str | None, *, instants: str = "all", **kw):
     """A copy of ``capture`` whose ``frames`` also hold the baseline's synthetic frames
-    (``kind`` None: the capture itself)."""
+    (``kind`` None: the capture itself). ``instants`` (TrainConfig.baseline_instants): "all"
+    -- their instants are RGB instants too (paper Table 1: trained on as if real); "real" --
+    they are not (``knot`` False): only the frame loss sees them."""
     if not kind:
         return capture
-    extra = baseline_frames(capture, kind, **kw)
+    if instants not in INSTANTS:
+        raise ValueError(f"baseline instants must be one of {', '.join(INSTANTS)} (got {instants!r})")
+    extra = baseline_frames(capture, kind, knots=instants == "all", **kw)
     return dataclasses.replace(capture, frames=list(capture.frames) + extra)

@@ -20,7 +20,32 @@ from .fused_ssim import fused_ssim
 from .geometry_losses import geometry_loss_terms
 from .presets import TrainConfig
 
-__all__ = ["LossTerm", "StepContext", "default_loss_terms"]
+__all__ = ["LossTerm", "StepContext", "default_loss_terms", "frame_item_fields"]
+
+def frame_item_fields(frame, cfg: TrainConfig, device) -> dict:
+    """The trainer item's fields that say how a train frame is supervised: ``synthetic``
+    (a baseline's generated frame, engine.train.baselines), ``knot`` (its instant is an RGB
+    instant: trajectory knot, scene-flow carry, spike intervals; the frame's ``knot``, from
+    ``cfg.baseline_instants``), and for synthetic frames ``loss_scale``
+    (``cfg.baseline_weight``) and ``trusted`` (bool [1, H, W, 1] of the pixels the frame loss
+    uses, or absent: all)."""
+    synthetic = bool(getattr(frame, "extra", {}).get("synthetic"))
+    out = {"synthetic": synthetic, "knot": bool(getattr(frame, "knot", True))}
+    if synthetic:
+        out["loss_scale"] = float(cfg.baseline_weight)
+        trusted = getattr(frame, "trusted", None)
+        if trusted is not None:
+            out["trusted"] = torch.as_tensor(trusted, dtype=torch.bool, device=device)[None, ..., None]
+    return out
+
+
+def _frame_target(ctx: "StepContext"):
+    """(target image [1, H, W, 3], weight) of the frame loss: a synthetic frame's untrusted
+    pixels take the render itself (no gradient there, for L1 and, up to its windows, D-SSIM)."""
+    item = ctx.item
+    trusted = item.get("trusted")
+    target = item["image"] if trusted is None else torch.where(trusted, item["image"], ctx.rgb.detach())
+    return target, item.get("loss_scale", 1.0)
 
 
 @dataclass
@@ -46,18 +71,20 @@ class StepContext:
 
 
 def _l1(ctx: StepContext):
-    return (ctx.rgb - ctx.item["image"]).abs().mean()
+    target, w = _frame_target(ctx)
+    return (ctx.rgb - target).abs().mean() * w
 
 
 def _dssim(ctx: StepContext):
-    fused = fused_ssim(ctx.rgb, ctx.item["image"])  # the same SSIM in two numba passes (issue 13)
+    target, w = _frame_target(ctx)
+    fused = fused_ssim(ctx.rgb, target)  # the same SSIM in two numba passes (issue 13)
     if fused is not None:
-        return 1.0 - fused
+        return (1.0 - fused) * w
     pred = ctx.rgb.permute(0, 3, 1, 2)
-    gt = ctx.item["image"].permute(0, 3, 1, 2)
+    gt = target.permute(0, 3, 1, 2)
     if min(pred.shape[-2:]) < 11:
         return None
-    return 1.0 - ssim(pred, gt, data_range=1.0, size_average=True)
+    return (1.0 - ssim(pred, gt, data_range=1.0, size_average=True)) * w
 
 
 def _block_l1(ctx: StepContext):
@@ -67,8 +94,9 @@ def _block_l1(ctx: StepContext):
     pred = ctx.rgb.permute(0, 3, 1, 2)
     if min(pred.shape[-2:]) < 2 * k:
         return None
-    gt = ctx.item["image"].permute(0, 3, 1, 2)
-    return (F.avg_pool2d(pred, k) - F.avg_pool2d(gt, k)).abs().mean()
+    target, w = _frame_target(ctx)
+    gt = target.permute(0, 3, 1, 2)
+    return (F.avg_pool2d(pred, k) - F.avg_pool2d(gt, k)).abs().mean() * w
 
 
 def _stereo_depth(ctx: StepContext):

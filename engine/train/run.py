@@ -87,7 +87,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     cap = _load_capture(capture)
     cfg = get_preset(preset, overrides)
     if cfg.baseline:  # two-stage baselines (paper Table 1): synthetic in-between training frames
-        cap = with_baseline(cap, cfg.baseline, per_interval=cfg.baseline_per_interval)
+        cap = with_baseline(cap, cfg.baseline, per_interval=cfg.baseline_per_interval, mask_px=cfg.baseline_mask_px,
+                            instants=cfg.baseline_instants)
     torch.manual_seed(seed)
     np.random.seed(seed % (2 ** 32))
     cap_path = capture_path(cap)

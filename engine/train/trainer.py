@@ -51,7 +51,7 @@ from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
 from .geometry_losses import geometry_post_step_hooks, step_background
-from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms
+from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms, frame_item_fields
 from .presets import TrainConfig, block_weight
 from .quiet_curves import quiet_curves_factory
 from .schedule import Schedule
@@ -150,7 +150,7 @@ class Trainer:
             vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(self.device)[None]
             vt["index"] = i
             vt["camera"] = f.camera
-            vt["synthetic"] = bool(getattr(f, "extra", {}).get("synthetic"))  # baseline frames
+            vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight, mask
             self.items.append(vt)
         if cfg.lambda_depth > 0:  # issue 14: fused SGBM depth at every RGB instant
             priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache,
@@ -161,7 +161,7 @@ class Trainer:
                     d, ok = priors[id(f)]
                     it["stereo_depth"] = torch.from_numpy(d).to(self.device)
                     it["stereo_mask"] = torch.from_numpy(ok).to(self.device)
-        self.frame_times = sorted({round(float(f.time), 9) for f in frames})
+        self.frame_times = sorted({round(float(it["time"]), 9) for it in self.items if it["knot"]})
         tr = getattr(capture, "time_range", None)
         self.time_range = (float(tr[0]), float(tr[1])) if tr else (min(self.frame_times), max(self.frame_times))
         self.model: Model4D | None = None
