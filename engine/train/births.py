@@ -28,7 +28,7 @@ and all of them with ``"nearest"``, take the displacement of the nearest Gaussia
 ``T_j`` within ``traj_carry_hidden`` x extent. Measured at 1000 steps (README "Births that
 move"): none of them pays yet.
 
-How long they live (``birth_static_lifespan``, 16 by default): the temporal std barely trains
+How long they live (``birth_static_lifespan``, off by default): the temporal std barely trains
 (fast, 1000 steps: median 0.45 interval for an initial 0.5), and 73 % of the fast scene's births
 sit on pixels a neighbouring RGB instant of the same camera repeats (:func:`unchanged_pixels`):
 a static surface the render missed, which should not fade between instants. Those get
