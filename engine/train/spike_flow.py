@@ -145,16 +145,25 @@ class _InnerAt(torch.autograd.Function):
     ``traj.segment_weights``); the backward writes ``w_j * grad`` into rows ``idx`` of the inner
     columns (``c % 3 != 0``) of one zero [N, K, C] gradient: no [M, K, C] gather, mask or
     scatter (issue 13; the same numbers as the gather + ``torch.where`` + ``traj.evaluate``
-    form, bit for bit, ``tests/test_spike_flow.py``)."""
+    form, bit for bit, ``tests/test_spike_flow.py``). On the CPU forward and backward are a
+    numba pair (``_trajectory_kernels.inner_at``): no per-column gather, multiply and
+    ``index_add_``, the same numbers (``tests/test_step_cost.py``)."""
 
     @staticmethod
     def forward(ctx, params, base, idx, cols, weights):
+        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
+        ctx.save_for_backward(idx)
+        ctx.fused = _fused_inner(params, base, idx)
+        if ctx.fused:  # one pass over the subset's rows (_trajectory_kernels.inner_at), same numbers
+            out = base.new_empty(base.shape)
+            traj.KERNELS.module.inner_at(params.detach().numpy(), base.detach().numpy(), idx.numpy(),
+                                         np.asarray(cols, np.int64), np.asarray(weights, _NP[params.dtype]),
+                                         out.numpy())
+            return out
         out = None
         for c, w in zip(cols, weights):
             term = params[idx, c] * w
             out = term if out is None else out.add_(term)
-        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
-        ctx.save_for_backward(idx)
         return base + out
 
     @staticmethod
@@ -162,10 +171,27 @@ class _InnerAt(torch.autograd.Function):
     def backward(ctx, grad):
         (idx,) = ctx.saved_tensors
         g = grad.new_zeros(ctx.shape)
+        if ctx.fused and grad.dtype == g.dtype and grad.device.type == "cpu":
+            traj.KERNELS.module.inner_at_backward(grad.detach().contiguous().numpy(), idx.numpy(),
+                                                  np.asarray(ctx.cols, np.int64),
+                                                  np.asarray(ctx.weights, _NP[grad.dtype]), g.numpy())
+            return g, None, None, None, None
         for c, w in zip(ctx.cols, ctx.weights):
             if c % 3:
                 g[:, c].index_add_(0, idx, torch.mul(grad, w))
         return g, None, None, None, None
+
+
+_NP = {torch.float32: np.float32, torch.float64: np.float64}
+# False: _InnerAt in torch ops (a gather and a multiply per column; index_add_ per inner column
+# backward), as before its numba pair (bench-step's "inner-torch" variant)
+FUSED_INNER = True
+
+
+def _fused_inner(params: torch.Tensor, base: torch.Tensor, idx: torch.Tensor) -> bool:
+    return (FUSED_INNER and params.device.type == "cpu" and params.dtype in _NP and base.dtype == params.dtype
+            and params.is_contiguous() and base.is_contiguous() and base.dim() == 2 and idx.dtype == torch.int64
+            and idx.is_contiguous() and idx.device.type == "cpu" and traj.KERNELS.load() is not None)
 
 
 def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,77 @@
+"""Issue 13's step-cost fast paths (round "stepcost"), each against the code it replaces, bit
+for bit: the flow term's subset positions (a numba gather / scatter instead of per-column
+torch ops) and the stereo depth term (flat pixel indices hoisted out of the step)."""
+from __future__ import annotations
+
+import types
+
+import pytest
+import torch
+
+from engine.scene import trajectory as traj
+from engine.scene.model import TRAJ_MEANS
+from engine.train import losses, spike_flow
+
+pytestmark = pytest.mark.skipif(not traj.KERNELS.available(), reason="numba kernels unavailable")
+
+
+def _bits(x: torch.Tensor) -> torch.Tensor:
+    """Integer view of a float tensor: equality of these is equality bit for bit (signed zeros, NaNs)."""
+    return x.contiguous().view(torch.int32 if x.dtype == torch.float32 else torch.int64)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_inner_only_positions_kernel_equals_the_torch_columns(dtype, monkeypatch):
+    """Value and gradient of the flow term's subset positions: numba pair = per-column torch
+    ops, bit for bit, at and between the knots, for a random distinct subset (gradient only in
+    the subset's rows' inner columns)."""
+    gen = torch.Generator().manual_seed(5)
+    n, knots = 300, [0.0, 0.1, 0.2, 0.3]
+    params = (torch.randn(n, 3 * (len(knots) - 1) + 1, 3, generator=gen, dtype=dtype) * 0.01).requires_grad_(True)
+    means = torch.randn(n, 3, generator=gen, dtype=dtype).requires_grad_(True)
+    model = types.SimpleNamespace(gaussians=types.SimpleNamespace(means=means, **{TRAJ_MEANS: params}),
+                                  trajectory={"knots": knots})
+    idx = torch.randperm(n, generator=torch.Generator().manual_seed(6))[: n // 3]
+    w = torch.randn(idx.numel(), 3, generator=torch.Generator().manual_seed(7), dtype=dtype)
+    calls = []
+    for name in ("inner_at", "inner_at_backward"):
+        kernel = getattr(traj.KERNELS.module, name)
+        monkeypatch.setattr(traj.KERNELS.module, name, lambda *a, _k=kernel, _n=name: (calls.append(_n), _k(*a))[1])
+    for t in (knots[0], 0.05, knots[1], 0.137, 0.29, knots[-1]):
+        out = []
+        for fused in (False, True):
+            monkeypatch.setattr(spike_flow, "FUSED_INNER", fused)
+            params.grad = None
+            x = spike_flow.inner_only_positions(model, t, idx)
+            (x * w).sum().backward()
+            out.append((x.detach(), params.grad.clone()))
+        assert out[0][0].dtype == dtype and means.grad is None
+        assert torch.equal(_bits(out[0][0]), _bits(out[1][0])) and torch.equal(_bits(out[0][1]), _bits(out[1][1]))
+        rows = torch.zeros(n, dtype=torch.bool)
+        rows[idx] = True
+        assert torch.all(out[1][1][~rows] == 0) and torch.all(out[1][1][:, 0::3] == 0)
+    assert calls == ["inner_at", "inner_at_backward"] * 6  # the fused runs took the kernels
+
+
+def _stereo_ctx(trainer, h=12, w=16, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    mask = torch.rand(h, w, generator=gen) < 0.4
+    item = {"stereo_depth": 1.0 + torch.rand(h, w, generator=gen), "stereo_mask": mask}
+    depth = (1.0 + torch.rand(1, h, w, 1, generator=gen)).requires_grad_(True)
+    return types.SimpleNamespace(trainer=trainer, item=item, meta={"depths": depth}), depth
+
+
+def test_stereo_depth_hoisted_indices_equal_the_boolean_masks(monkeypatch):
+    """Loss and depth gradient bit for bit the boolean-mask form's, on the first call (cache
+    filled), a second one (cache hit) and another item (its own entry)."""
+    trainer = types.SimpleNamespace()
+    for ctx, depth in (_stereo_ctx(trainer, seed=0),) * 2 + (_stereo_ctx(trainer, seed=1),):
+        out = []
+        for hoist in (False, True):
+            monkeypatch.setattr(losses, "HOIST_STEREO", hoist)
+            depth.grad = None
+            val = losses._stereo_depth(ctx)
+            (val * 3.0).backward()
+            out.append((val.detach(), depth.grad.clone()))
+        assert torch.equal(_bits(out[0][0]), _bits(out[1][0])) and torch.equal(_bits(out[0][1]), _bits(out[1][1]))
+    assert len(trainer._stereo_pixels) == 2
