@@ -53,6 +53,30 @@ def test_inner_only_positions_kernel_equals_the_torch_columns(dtype, monkeypatch
     assert calls == ["inner_at", "inner_at_backward"] * 6  # the fused runs took the kernels
 
 
+def test_subset_positions_equal_the_gathered_evaluation(monkeypatch):
+    """The flow term's no-gradient positions of a row subset (surface reprojection, interval fit):
+    the kernel reading the rows in place = ``means[idx] + evaluate(curves[idx])``, bit for bit."""
+    gen = torch.Generator().manual_seed(8)
+    n, knots = 500, [0.0, 0.04, 0.1, 0.13, 0.2]
+    params = (torch.randn(n, 3 * (len(knots) - 1) + 1, 3, generator=gen) * 0.05).requires_grad_(True)
+    means = torch.randn(n, 3, generator=gen).requires_grad_(True)
+    model = types.SimpleNamespace(gaussians=types.SimpleNamespace(means=means, **{TRAJ_MEANS: params}),
+                                  trajectory={"knots": knots})
+    idx = torch.randperm(n, generator=gen)[:123]
+    calls = []
+    kernel = traj.KERNELS.module.inner_at
+    monkeypatch.setattr(traj.KERNELS.module, "inner_at", lambda *a: (calls.append(1), kernel(*a))[1])
+    for t in (0.0, 0.013, 0.04, 0.0999, 0.17, 0.2, 0.25):
+        with torch.no_grad():
+            ref = means[idx] + traj.evaluate(params[idx], knots, t)
+        fast = spike_flow.subset_positions(model, t, idx)
+        assert not fast.requires_grad and torch.equal(_bits(fast), _bits(ref))
+    assert len(calls) == 7
+    monkeypatch.setattr(spike_flow, "FUSED_INNER", False)
+    assert torch.equal(spike_flow.subset_positions(model, 0.013, idx), means.detach()[idx]
+                       + traj.evaluate(params.detach()[idx], knots, 0.013)) and len(calls) == 7
+
+
 def _stereo_ctx(trainer, h=12, w=16, seed=0):
     gen = torch.Generator().manual_seed(seed)
     mask = torch.rand(h, w, generator=gen) < 0.4

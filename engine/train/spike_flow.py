@@ -48,7 +48,7 @@ from .scene_flow import dense_flow, propagate_to_hidden
 from .spike_guidance import spike_view_guidance
 
 __all__ = ["gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map", "project", "lift",
-           "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions",
+           "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions", "subset_positions",
            "SpikeFlowSupervision", "spike_flow_factory"]
 
 
@@ -212,6 +212,26 @@ def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.T
     return _InnerAt.apply(params, g.means.detach()[idx], idx, cols, weights)
 
 
+@torch.no_grad()
+def subset_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:
+    """Positions [M, 3] of Gaussians ``idx`` at ``t`` (no gradient):
+    ``means[idx] + traj.evaluate(curves[idx], knots, t)``. On the CPU the curves' rows are read
+    in place by the numba pass of :class:`_InnerAt` (all columns) instead of gathered into an
+    [M, K, 3] copy first: the same numbers (issue 13, ``tests/test_step_cost.py``)."""
+    g = model.gaussians
+    params = getattr(g, TRAJ_MEANS)
+    knots = model.trajectory["knots"]
+    base = g.means.detach()[idx]
+    if traj.EVALUATOR != "torch" and _fused_inner(params, base, idx):
+        traj._check(params, traj._knots(knots))
+        cols, weights = zip(*traj.segment_weights(knots, t))
+        out = torch.empty_like(base)
+        traj.KERNELS.module.inner_at(params.detach().numpy(), base.numpy(), idx.numpy(), np.asarray(cols, np.int64),
+                                     np.asarray(weights, _NP[params.dtype]), out.numpy())
+        return out
+    return base + traj.evaluate(params.detach()[idx], knots, t)
+
+
 # ------------------------------------------------------------------------------ trainer term
 class SpikeFlowSupervision:
     """Per-run state of the term: flow cache, the spike camera and the RGB instants."""
@@ -320,9 +340,7 @@ class SpikeFlowSupervision:
             return idx, uv
         idx = hit[2]
         with torch.no_grad():
-            g = model.gaussians
-            x = g.means[idx] + traj.evaluate(getattr(g, TRAJ_MEANS)[idx], model.trajectory["knots"], t_ref)
-            uv, _ = project(x, self.viewmat, self.K)
+            uv, _ = project(subset_positions(model, t_ref, idx), self.viewmat, self.K)
         return idx, uv
 
     @torch.no_grad()
@@ -348,7 +366,7 @@ class SpikeFlowSupervision:
         for u in us.tolist():
             t = a + (b - a) * u
             flow, valid = self.flow(a, t)
-            x = g.means[idx] + traj.evaluate(params[idx], knots, t)
+            x = subset_positions(model, t, idx)
             _, z = project(x, self.viewmat, self.K)
             f = sample_map(flow, uv_ref)
             cur.append(x)
