@@ -1,6 +1,7 @@
 """Issue 13's step-cost fast paths (round "stepcost"), each against the code it replaces, bit
 for bit: the flow term's subset positions (a numba gather / scatter instead of per-column
-torch ops) and the stereo depth term (flat pixel indices hoisted out of the step)."""
+torch ops and row gathers), the stereo depth term (flat pixel indices hoisted out of the
+step) and OpenCV's DIS flow through one reused object."""
 from __future__ import annotations
 
 import types
@@ -99,3 +100,41 @@ def test_stereo_depth_hoisted_indices_equal_the_boolean_masks(monkeypatch):
             out.append((val.detach(), depth.grad.clone()))
         assert torch.equal(_bits(out[0][0]), _bits(out[1][0])) and torch.equal(_bits(out[0][1]), _bits(out[1][1]))
     assert len(trainer._stereo_pixels) == 2
+
+
+def _textures(seed=0):
+    """Small 8-bit grey images: a blurred random texture, shifted a few pixels, with noise, at
+    two sizes (80 x 60 and 120 x 90)."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for w, h in ((80, 60), (120, 90)):
+        base = cv2.GaussianBlur(rng.random((h + 20, w + 20)).astype(np.float32), (0, 0), 1.5)
+        base = (base - base.min()) / (base.max() - base.min())
+        for dx, dy in ((0, 0), (3, 1), (1, 4)):
+            img = base[10 + dy:10 + dy + h, 10 + dx:10 + dx + w] + 0.03 * rng.standard_normal((h, w))
+            out.append((np.clip(img, 0, 1) * 255).astype(np.uint8))
+    return out
+
+
+def test_dense_flow_with_a_reused_dis_object_is_a_fresh_ones_bit_for_bit(monkeypatch):
+    """DIS keeps no state between calc() calls without an initial flow: flows through this
+    thread's one object (sizes, scales and pairs interleaved) equal a new object's per call."""
+    import numpy as np
+
+    from engine.train import scene_flow
+
+    imgs = _textures()
+    pairs = [(a, b) for a in range(6) for b in range(6) if a != b and (a < 3) == (b < 3)]
+    for a, b in pairs:
+        for up, scale in ((2, 0), (1, None), (1, 0)):
+            monkeypatch.setattr(scene_flow, "REUSE_DIS", True)
+            reused = scene_flow.dense_flow(imgs[a], imgs[b], up, scale)
+            monkeypatch.setattr(scene_flow, "REUSE_DIS", False)
+            fresh = scene_flow.dense_flow(imgs[a], imgs[b], up, scale)
+            assert np.array_equal(reused.view(np.int32), fresh.view(np.int32)), (a, b, up, scale)
+    monkeypatch.setattr(scene_flow, "REUSE_DIS", True)
+    assert scene_flow._dis(0) is scene_flow._dis(0) and scene_flow._dis(None) is not scene_flow._dis(0)
+    assert np.abs(scene_flow.dense_flow(imgs[0], imgs[1])).max() > 1.0  # a real flow, not zeros
