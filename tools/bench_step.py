@@ -336,7 +336,8 @@ VARIANTS = {
                                 (trajectory, "FUSED_FINITE"): False, (trajectory, "FUSED_CURVES"): False}},
     "stepcost-before": {"doc": "the step before the stepcost round: a new OpenCV DIS object per optical flow, the "
                                "flow term's subset positions by per-column torch ops and row gathers, the stereo "
-                               "depth term's pixels by boolean masks every step (same numbers)", "hexplane_sampler": "auto",
+                               "depth term's pixels by boolean masks every step (same numbers)",
+                        "hexplane_sampler": "auto",
                         "patches": {(spike_flow, "FUSED_INNER"): False, (losses, "HOIST_STEREO"): False,
                                     (scene_flow, "REUSE_DIS"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
