@@ -138,3 +138,19 @@ def test_dense_flow_with_a_reused_dis_object_is_a_fresh_ones_bit_for_bit(monkeyp
     monkeypatch.setattr(scene_flow, "REUSE_DIS", True)
     assert scene_flow._dis(0) is scene_flow._dis(0) and scene_flow._dis(None) is not scene_flow._dis(0)
     assert np.abs(scene_flow.dense_flow(imgs[0], imgs[1])).max() > 1.0  # a real flow, not zeros
+
+
+def test_flow_pair_on_two_threads_equals_one_after_the_other(monkeypatch):
+    """The spike-view flow term's pair (forward flow here, backward flow on the worker thread):
+    the same flow and validity, bit for bit, as computing them in turn."""
+    import numpy as np
+
+    imgs = [i.astype(np.float32) / 255.0 for i in _textures(1)[:3]]
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        out = []
+        for parallel in (False, True):
+            monkeypatch.setattr(spike_flow, "PARALLEL_PAIR", parallel)
+            out.append(spike_flow.flow_pair(imgs[a], imgs[b]))
+        assert np.array_equal(out[0][0].view(np.int32), out[1][0].view(np.int32))
+        assert np.array_equal(out[0][1], out[1][1]) and out[1][1].any()
+    assert spike_flow._PAIR_POOL  # the worker was used

@@ -74,12 +74,34 @@ def forward_backward_valid(fw: np.ndarray, bw: np.ndarray, tol_px: float = 0.5, 
     return inside & (err <= tol_px + tol_rel * mag)
 
 
+# True: flow_pair runs the backward flow on a second thread while this one runs the forward flow
+# (OpenCV releases the GIL; each thread has its own DIS object, scene_flow.REUSE_DIS): the same
+# flows, in about half the wall time of a pair when a core is free, the same CPU time. The flows are
+# most of what the spike-view flow term costs (~15 % of a guided step in a 200-step fast run, measured).
+# False: one after the other (bench-step's "stepcost-before" variant)
+PARALLEL_PAIR = True
+_PAIR_POOL: list = []  # one lazily started worker thread, shared by the process's runs
+
+
+def _pair_pool():
+    if not _PAIR_POOL:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _PAIR_POOL.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="bt4d-flow"))
+    return _PAIR_POOL[0]
+
+
 def flow_pair(gray_a: np.ndarray, gray_b: np.ndarray, *, upsample: int = 2, tol_px: float = 0.5
               ) -> tuple[np.ndarray, np.ndarray]:
     """(flow a -> b [h, w, 2], valid bool [h, w]) between two linear grey images [h, w]."""
     a8, b8 = gray_to_u8(gray_a, gray_b)
-    fw = dense_flow(a8, b8, upsample)
-    bw = dense_flow(b8, a8, upsample)
+    if PARALLEL_PAIR:
+        back = _pair_pool().submit(dense_flow, b8, a8, upsample)
+        fw = dense_flow(a8, b8, upsample)
+        bw = back.result()
+    else:
+        fw = dense_flow(a8, b8, upsample)
+        bw = dense_flow(b8, a8, upsample)
     return fw, forward_backward_valid(fw, bw, tol_px)
 
 
