@@ -45,7 +45,7 @@ from engine.scene import fused_adam, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import fused_ssim, interpolation, scene_flow, spike_flow, spike_guidance
+from engine.train import fused_ssim, interpolation, losses, scene_flow, spike_flow, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -334,6 +334,13 @@ VARIANTS = {
                     "hexplane_sampler": "auto",
                     "patches": {(interpolation, "FUSED_BOX"): False, (scene_flow, "ITEM_IMAGES"): False,
                                 (trajectory, "FUSED_FINITE"): False, (trajectory, "FUSED_CURVES"): False}},
+    "stepcost-before": {"doc": "the step before the stepcost round: a new OpenCV DIS object per optical flow, a flow "
+                               "pair's two flows one after the other, the "
+                               "flow term's subset positions by per-column torch ops and row gathers, the stereo "
+                               "depth term's pixels by boolean masks every step (same numbers)",
+                        "hexplane_sampler": "auto",
+                        "patches": {(spike_flow, "FUSED_INNER"): False, (losses, "HOIST_STEREO"): False,
+                                    (scene_flow, "REUSE_DIS"): False, (spike_flow, "PARALLEL_PAIR"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

@@ -102,3 +102,38 @@ def curve_at_backward(grad, cols, weights, out):
             col, w = cols[j], weights[j]
             for c in range(C):
                 out[r, col, c] = grad[r, c] * w
+
+
+# ---- a row subset of the curves at one instant, inner columns only: spike_flow._InnerAt -------
+# Rounding as the torch code it replaces: each term ``params[idx, c_j] * w_j`` (w_j rounded to the
+# dtype) added left to right, then ``base + sum``; the backward ``0 + grad * w_j`` accumulated into
+# rows ``idx`` of the inner columns (``index_add_`` into a zero tensor: a -0 product becomes +0).
+
+
+@njit(cache=True, nogil=True)
+def inner_at(params, base, idx, cols, weights, out):
+    """``out[m, c] = base[m, c] + sum_j params[idx[m], cols[j], c] * weights[j]`` (j ascending)."""
+    M, C = out.shape
+    nj = cols.size
+    for m in range(M):
+        r = idx[m]
+        for c in range(C):
+            acc = params[r, cols[0], c] * weights[0]
+            for j in range(1, nj):
+                acc = acc + params[r, cols[j], c] * weights[j]
+            out[m, c] = base[m, c] + acc
+
+
+@njit(cache=True, nogil=True)
+def inner_at_backward(grad, idx, cols, weights, out):
+    """``out[idx[m], cols[j], c] += grad[m, c] * weights[j]`` for the inner columns
+    (``cols[j] % 3 != 0``), columns in the order given, rows in order (``out`` zero-filled)."""
+    M, C = grad.shape
+    for j in range(cols.size):
+        col, w = cols[j], weights[j]
+        if col % 3 == 0:
+            continue
+        for m in range(M):
+            r = idx[m]
+            for c in range(C):
+                out[r, col, c] = out[r, col, c] + grad[m, c] * w

@@ -48,7 +48,7 @@ from .scene_flow import dense_flow, propagate_to_hidden
 from .spike_guidance import spike_view_guidance
 
 __all__ = ["gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map", "project", "lift",
-           "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions",
+           "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions", "subset_positions",
            "SpikeFlowSupervision", "spike_flow_factory"]
 
 
@@ -74,12 +74,34 @@ def forward_backward_valid(fw: np.ndarray, bw: np.ndarray, tol_px: float = 0.5, 
     return inside & (err <= tol_px + tol_rel * mag)
 
 
+# True: flow_pair runs the backward flow on a second thread while this one runs the forward flow
+# (OpenCV releases the GIL; each thread has its own DIS object, scene_flow.REUSE_DIS): the same
+# flows, in about half the wall time of a pair when a core is free, the same CPU time. The flows are
+# most of what the spike-view flow term costs (~15 % of a guided step in a 200-step fast run, measured).
+# False: one after the other (bench-step's "stepcost-before" variant)
+PARALLEL_PAIR = True
+_PAIR_POOL: list = []  # one lazily started worker thread, shared by the process's runs
+
+
+def _pair_pool():
+    if not _PAIR_POOL:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _PAIR_POOL.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="bt4d-flow"))
+    return _PAIR_POOL[0]
+
+
 def flow_pair(gray_a: np.ndarray, gray_b: np.ndarray, *, upsample: int = 2, tol_px: float = 0.5
               ) -> tuple[np.ndarray, np.ndarray]:
     """(flow a -> b [h, w, 2], valid bool [h, w]) between two linear grey images [h, w]."""
     a8, b8 = gray_to_u8(gray_a, gray_b)
-    fw = dense_flow(a8, b8, upsample)
-    bw = dense_flow(b8, a8, upsample)
+    if PARALLEL_PAIR:
+        back = _pair_pool().submit(dense_flow, b8, a8, upsample)
+        fw = dense_flow(a8, b8, upsample)
+        bw = back.result()
+    else:
+        fw = dense_flow(a8, b8, upsample)
+        bw = dense_flow(b8, a8, upsample)
     return fw, forward_backward_valid(fw, bw, tol_px)
 
 
@@ -145,16 +167,25 @@ class _InnerAt(torch.autograd.Function):
     ``traj.segment_weights``); the backward writes ``w_j * grad`` into rows ``idx`` of the inner
     columns (``c % 3 != 0``) of one zero [N, K, C] gradient: no [M, K, C] gather, mask or
     scatter (issue 13; the same numbers as the gather + ``torch.where`` + ``traj.evaluate``
-    form, bit for bit, ``tests/test_spike_flow.py``)."""
+    form, bit for bit, ``tests/test_spike_flow.py``). On the CPU forward and backward are a
+    numba pair (``_trajectory_kernels.inner_at``): no per-column gather, multiply and
+    ``index_add_``, the same numbers (``tests/test_step_cost.py``)."""
 
     @staticmethod
     def forward(ctx, params, base, idx, cols, weights):
+        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
+        ctx.save_for_backward(idx)
+        ctx.fused = _fused_inner(params, base, idx)
+        if ctx.fused:  # one pass over the subset's rows (_trajectory_kernels.inner_at), same numbers
+            out = base.new_empty(base.shape)
+            traj.KERNELS.module.inner_at(params.detach().numpy(), base.detach().numpy(), idx.numpy(),
+                                         np.asarray(cols, np.int64), np.asarray(weights, _NP[params.dtype]),
+                                         out.numpy())
+            return out
         out = None
         for c, w in zip(cols, weights):
             term = params[idx, c] * w
             out = term if out is None else out.add_(term)
-        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
-        ctx.save_for_backward(idx)
         return base + out
 
     @staticmethod
@@ -162,10 +193,27 @@ class _InnerAt(torch.autograd.Function):
     def backward(ctx, grad):
         (idx,) = ctx.saved_tensors
         g = grad.new_zeros(ctx.shape)
+        if ctx.fused and grad.dtype == g.dtype and grad.device.type == "cpu":
+            traj.KERNELS.module.inner_at_backward(grad.detach().contiguous().numpy(), idx.numpy(),
+                                                  np.asarray(ctx.cols, np.int64),
+                                                  np.asarray(ctx.weights, _NP[grad.dtype]), g.numpy())
+            return g, None, None, None, None
         for c, w in zip(ctx.cols, ctx.weights):
             if c % 3:
                 g[:, c].index_add_(0, idx, torch.mul(grad, w))
         return g, None, None, None, None
+
+
+_NP = {torch.float32: np.float32, torch.float64: np.float64}
+# False: _InnerAt in torch ops (a gather and a multiply per column; index_add_ per inner column
+# backward), as before its numba pair (bench-step's "inner-torch" variant)
+FUSED_INNER = True
+
+
+def _fused_inner(params: torch.Tensor, base: torch.Tensor, idx: torch.Tensor) -> bool:
+    return (FUSED_INNER and params.device.type == "cpu" and params.dtype in _NP and base.dtype == params.dtype
+            and params.is_contiguous() and base.is_contiguous() and base.dim() == 2 and idx.dtype == torch.int64
+            and idx.is_contiguous() and idx.device.type == "cpu" and traj.KERNELS.load() is not None)
 
 
 def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:
@@ -184,6 +232,26 @@ def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.T
     traj._check(params, traj._knots(knots))
     cols, weights = zip(*traj.segment_weights(knots, t))
     return _InnerAt.apply(params, g.means.detach()[idx], idx, cols, weights)
+
+
+@torch.no_grad()
+def subset_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tensor:
+    """Positions [M, 3] of Gaussians ``idx`` at ``t`` (no gradient):
+    ``means[idx] + traj.evaluate(curves[idx], knots, t)``. On the CPU the curves' rows are read
+    in place by the numba pass of :class:`_InnerAt` (all columns) instead of gathered into an
+    [M, K, 3] copy first: the same numbers (issue 13, ``tests/test_step_cost.py``)."""
+    g = model.gaussians
+    params = getattr(g, TRAJ_MEANS)
+    knots = model.trajectory["knots"]
+    base = g.means.detach()[idx]
+    if traj.EVALUATOR != "torch" and _fused_inner(params, base, idx):
+        traj._check(params, traj._knots(knots))
+        cols, weights = zip(*traj.segment_weights(knots, t))
+        out = torch.empty_like(base)
+        traj.KERNELS.module.inner_at(params.detach().numpy(), base.numpy(), idx.numpy(), np.asarray(cols, np.int64),
+                                     np.asarray(weights, _NP[params.dtype]), out.numpy())
+        return out
+    return base + traj.evaluate(params.detach()[idx], knots, t)
 
 
 # ------------------------------------------------------------------------------ trainer term
@@ -294,9 +362,7 @@ class SpikeFlowSupervision:
             return idx, uv
         idx = hit[2]
         with torch.no_grad():
-            g = model.gaussians
-            x = g.means[idx] + traj.evaluate(getattr(g, TRAJ_MEANS)[idx], model.trajectory["knots"], t_ref)
-            uv, _ = project(x, self.viewmat, self.K)
+            uv, _ = project(subset_positions(model, t_ref, idx), self.viewmat, self.K)
         return idx, uv
 
     @torch.no_grad()
@@ -322,7 +388,7 @@ class SpikeFlowSupervision:
         for u in us.tolist():
             t = a + (b - a) * u
             flow, valid = self.flow(a, t)
-            x = g.means[idx] + traj.evaluate(params[idx], knots, t)
+            x = subset_positions(model, t, idx)
             _, z = project(x, self.viewmat, self.K)
             f = sample_map(flow, uv_ref)
             cur.append(x)
