@@ -608,6 +608,48 @@ def test_backward_row_pairs_cover_each_span_inside_the_tile():
 
 
 @NEEDS_NUMBA
+def test_backward_row_pairs_match_the_generic_kernel_on_every_span():
+    """The 8x8 backward visits a Gaussian's tile rows two at a time (an odd span widened by
+    a row): spans of every length and start must give the per-intersection gradients of
+    the generic kernel (one row at a time), which sees the same spans."""
+    sc = make_scene(N=400, W=40, H=32, seed=23, scale=0.05, spread=0.9)
+    proj = raster_cpu.project(sc["means"], sc["quats"], sc["scales"], sc["opacities"],
+                              sc["viewmats"], sc["Ks"], 40, 32)
+    feats = torch.cat([sc["colors"][None], proj.depths[..., None]], -1).float().contiguous()
+    ops = sc["opacities"][None].float()
+    offsets, ids, spans, tx, ty = raster_cpu.bin_gaussians(
+        proj.means2d, proj.conics, ops, proj.radii_xy, proj.depths, 40, 32, 8)
+    r0, r1 = spans & 255, spans >> 8
+    assert {(a, b) for a, b in zip(r0.tolist(), r1.tolist())} >= {(a, a + n) for n in (1, 2, 3)
+                                                                 for a in range(0, 9 - n)}
+    k = raster_cpu._load()
+    n = proj.means2d.shape[1]
+    packed = np.empty((ids.shape[0], 10), np.float32)
+    k.pack(proj.means2d.detach().numpy().reshape(n, 2), proj.conics.detach().numpy().reshape(n, 3),
+           ops.numpy().reshape(n), feats.numpy().reshape(n, 4), ids, packed)
+    out_f, out_a = np.zeros((1, 32, 40, 4), np.float32), np.zeros((1, 32, 40), np.float32)
+    final_t, last_i = np.ones((1, 32, 40), np.float32), np.full((1, 32, 40), -1, np.int32)
+    k.rasterize_fwd(packed, spans, offsets, 1, 32, 40, 8, tx, ty, 0.99, out_f, out_a, final_t, last_i)
+    g = np.random.default_rng(2)
+    v_feat = g.standard_normal((1, 32, 40, 4)).astype(np.float32)
+    v_alpha = g.standard_normal((1, 32, 40)).astype(np.float32)
+    grads = []
+    for kernel in (k._bwd_tile8, k._bwd_tile):
+        v = np.full((ids.shape[0], 10), np.nan, np.float32)
+        for tile in range(tx * ty):
+            if kernel is k._bwd_tile8:
+                kernel(tile, packed, spans, offsets, 32, 40, tx, tx * ty, np.float32(0.99),
+                       final_t, last_i, v_feat, v_alpha, v)
+            else:
+                kernel(tile, packed, spans, offsets, 32, 40, 8, tx, tx * ty, np.float32(0.99),
+                       final_t, last_i, v_feat, v_alpha, v)
+        grads.append(v)
+    assert np.isfinite(grads[0]).all() and np.abs(grads[1]).max() > 0
+    scale = np.abs(grads[1]).max(0)
+    assert (np.abs(grads[0] - grads[1]) <= 1e-4 * scale + 1e-6).all()
+
+
+@NEEDS_NUMBA
 def test_composite_tiles_matches_composite_dense():
     """``cpu.composite_tiles`` (raw feature sums, any channel count <= 4; ``rasterization``
     now runs ``rasterize_fused``) keeps the contract of ``reference.composite_dense``:
