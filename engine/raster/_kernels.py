@@ -807,19 +807,29 @@ def pack(means2d, conics, opac, feats, ids, packed):
 def pack_split(means2d, conics, opac, rgb, z, n_per_cam, ids, packed):
     """``pack`` for ``rasterization``'s fused path: the features come as rgb [G,3] and
     depth z [G] (G = C * N) and the opacities once per Gaussian, opac [N], not per camera
-    (no torch concatenation or expansion, and none of their backward)."""
+    (no torch concatenation or expansion, and none of their backward).
+
+    Two passes (round 4): the Gaussians' records are first assembled in index order (five
+    sequential streams), then gathered per intersection (one 40-byte record each). Gathering
+    straight from the five arrays cost five cache misses per intersection: 2.3 ms at 320x240
+    / 50k inside a forward+backward, whose other stages leave those arrays out of cache."""
+    G = means2d.shape[0]
+    rec = np.empty((G, 10), np.float32)
+    for g in prange(G):
+        rec[g, 0] = means2d[g, 0]
+        rec[g, 1] = means2d[g, 1]
+        rec[g, 2] = conics[g, 0]
+        rec[g, 3] = conics[g, 1]
+        rec[g, 4] = conics[g, 2]
+        rec[g, 5] = opac[g % n_per_cam]
+        rec[g, 6] = rgb[g, 0]
+        rec[g, 7] = rgb[g, 1]
+        rec[g, 8] = rgb[g, 2]
+        rec[g, 9] = z[g]
     for k in prange(ids.shape[0]):
         g = ids[k]
-        packed[k, 0] = means2d[g, 0]
-        packed[k, 1] = means2d[g, 1]
-        packed[k, 2] = conics[g, 0]
-        packed[k, 3] = conics[g, 1]
-        packed[k, 4] = conics[g, 2]
-        packed[k, 5] = opac[g % n_per_cam]
-        packed[k, 6] = rgb[g, 0]
-        packed[k, 7] = rgb[g, 1]
-        packed[k, 8] = rgb[g, 2]
-        packed[k, 9] = z[g]
+        for j in range(10):
+            packed[k, j] = rec[g, j]
 
 
 @njit(cache=True, nogil=True)
