@@ -650,6 +650,23 @@ def test_backward_row_pairs_match_the_generic_kernel_on_every_span():
 
 
 @NEEDS_NUMBA
+@pytest.mark.parametrize("n_isect", [7, 900])
+def test_pack_split_gathers_each_intersections_record(n_isect):
+    """``pack_split`` takes two routes: fewer intersections than Gaussians gather straight
+    from the arrays, more assemble per-Gaussian records first. Both give the same rows."""
+    k = raster_cpu._load()
+    g = np.random.default_rng(9)
+    C, N = 2, 150
+    m2d, con = g.random((C * N, 2), np.float32), g.random((C * N, 3), np.float32)
+    op, rgb, z = g.random(N, np.float32), g.random((C * N, 3), np.float32), g.random(C * N, np.float32)
+    ids = g.integers(0, C * N, n_isect).astype(np.int32)
+    packed = np.full((n_isect, 10), np.nan, np.float32)
+    k.pack_split(m2d, con, op, rgb, z, N, ids, packed)
+    expect = np.concatenate([m2d[ids], con[ids], op[ids % N, None], rgb[ids], z[ids, None]], 1)
+    np.testing.assert_array_equal(packed, expect)
+
+
+@NEEDS_NUMBA
 def test_composite_tiles_matches_composite_dense():
     """``cpu.composite_tiles`` (raw feature sums, any channel count <= 4; ``rasterization``
     now runs ``rasterize_fused``) keeps the contract of ``reference.composite_dense``:
