@@ -1079,11 +1079,12 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, eps2d,
-                v_m2d, v_conic, v_z, v_out):
-    """Gradients of project_fwd's means2d / conics / z w.r.t. means, quats and scales,
-    written (not accumulated) to v_out [N,10] = (means 3, quats 4, scales 3): one output
-    array, as each written array costs LLVM a runtime alias check against every read one
-    and too many of those keep it from vectorising the loop."""
+                v_m2d, v_conic, v_z, v_means, v_quats, v_scales):
+    """Gradients of project_fwd's means2d / conics / z w.r.t. means, quats and scales
+    (v_means [N,3], v_quats [N,4], v_scales [N,3] are written, not accumulated). The
+    per-Gaussian loops write only the chunk's [12, chunk] scratch and a plain copy loop
+    moves the result out: each written array costs LLVM a runtime alias check against
+    every read one, and too many of those kept the loop scalar."""
     N = means.shape[0]
     C = viewmats.shape[0]
     cams = _cam_table(viewmats, Ks, width, height)
@@ -1247,8 +1248,12 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
             tmp[5, i] = (gy - y * dot) * inv
             tmp[6, i] = (gzq - z * dot) * inv
         for n in range(lo, hi):
-            for j in range(10):
-                v_out[n, j] = tmp[j, n - lo]
+            i = n - lo
+            for j in range(3):
+                v_means[n, j] = tmp[j, i]
+                v_scales[n, j] = tmp[7 + j, i]
+            for j in range(4):
+                v_quats[n, j] = tmp[3 + j, i]
 
 
 # ------------------------------------------------------------------------- SH combination

@@ -241,12 +241,13 @@ class _Project(torch.autograd.Function):
         def zeros(shape, g):
             return np.zeros(shape, dt) if g is None else _np(g).astype(dt, copy=False)
 
-        v_out = np.zeros((N, 10), dt)  # means 3, quats 4, scales 3 (one array: see the kernel)
+        v_means = np.zeros((N, 3), dt)
+        v_quats = np.zeros((N, 4), dt)
+        v_scales = np.zeros((N, 3), dt)
         if N > 0:
             k.project_bwd(*ctx.args, zeros((C, N, 2), v_m2d), zeros((C, N, 3), v_con),
-                          zeros((C, N), v_z), v_out)
-        v = torch.from_numpy(v_out)
-        return (v[:, 0:3], v[:, 3:7], v[:, 7:10],
+                          zeros((C, N), v_z), v_means, v_quats, v_scales)
+        return (torch.from_numpy(v_means), torch.from_numpy(v_quats), torch.from_numpy(v_scales),
                 None, None, None, None, None, None, None, None)
 
 
