@@ -803,6 +803,22 @@ def pack(means2d, conics, opac, feats, ids, packed):
         packed[k, 9] = feats[g, 3]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _split_record(dst, k, g, means2d, conics, opac, rgb, z, n_per_cam):
+    """dst[k] = ``pack``'s record of projected Gaussian g (G = C * N index) from
+    ``pack_split``'s inputs."""
+    dst[k, 0] = means2d[g, 0]
+    dst[k, 1] = means2d[g, 1]
+    dst[k, 2] = conics[g, 0]
+    dst[k, 3] = conics[g, 1]
+    dst[k, 4] = conics[g, 2]
+    dst[k, 5] = opac[g % n_per_cam]
+    dst[k, 6] = rgb[g, 0]
+    dst[k, 7] = rgb[g, 1]
+    dst[k, 8] = rgb[g, 2]
+    dst[k, 9] = z[g]
+
+
 @njit(parallel=True, cache=True)
 def pack_split(means2d, conics, opac, rgb, z, n_per_cam, ids, packed):
     """``pack`` for ``rasterization``'s fused path: the features come as rgb [G,3] and
@@ -819,30 +835,11 @@ def pack_split(means2d, conics, opac, rgb, z, n_per_cam, ids, packed):
     M = ids.shape[0]
     if M < G:  # few intersections per Gaussian (small views): the record pass would cost more
         for k in prange(M):
-            g = ids[k]
-            packed[k, 0] = means2d[g, 0]
-            packed[k, 1] = means2d[g, 1]
-            packed[k, 2] = conics[g, 0]
-            packed[k, 3] = conics[g, 1]
-            packed[k, 4] = conics[g, 2]
-            packed[k, 5] = opac[g % n_per_cam]
-            packed[k, 6] = rgb[g, 0]
-            packed[k, 7] = rgb[g, 1]
-            packed[k, 8] = rgb[g, 2]
-            packed[k, 9] = z[g]
+            _split_record(packed, k, ids[k], means2d, conics, opac, rgb, z, n_per_cam)
         return
     rec = np.empty((G, 10), np.float32)
     for g in prange(G):
-        rec[g, 0] = means2d[g, 0]
-        rec[g, 1] = means2d[g, 1]
-        rec[g, 2] = conics[g, 0]
-        rec[g, 3] = conics[g, 1]
-        rec[g, 4] = conics[g, 2]
-        rec[g, 5] = opac[g % n_per_cam]
-        rec[g, 6] = rgb[g, 0]
-        rec[g, 7] = rgb[g, 1]
-        rec[g, 8] = rgb[g, 2]
-        rec[g, 9] = z[g]
+        _split_record(rec, g, g, means2d, conics, opac, rgb, z, n_per_cam)
     for k in prange(M):
         g = ids[k]
         for j in range(10):
@@ -969,6 +966,41 @@ def _unit_quat(quats, n):
             z * inv if ok else 0.0, inv if ok else 0.0)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _view_rt(viewmats, c):
+    """Camera ``c``'s world-to-camera rotation, row-major, then translation (12 scalars)."""
+    return (viewmats[c, 0, 0], viewmats[c, 0, 1], viewmats[c, 0, 2], viewmats[c, 1, 0],
+            viewmats[c, 1, 1], viewmats[c, 1, 2], viewmats[c, 2, 0], viewmats[c, 2, 1],
+            viewmats[c, 2, 2], viewmats[c, 0, 3], viewmats[c, 1, 3], viewmats[c, 2, 3])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _cam_jacobian(means, n, rt, fx, fy, ulo, uhi, vlo, vhi, near, far):
+    """Gaussian ``n``'s camera-space centre (px, py, pz), whether it lies in (near, far),
+    1 / pz, the normalised image point (u, v) and its clamped copy (uc, vc), fx / pz, fy / pz
+    and the rows of J R (the perspective Jacobian at the clamped point times the rotation),
+    shared by ``project_fwd`` and ``project_bwd`` so both see the same operations in the same
+    order (inlined: the chunk loops stay vectorised)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, t0_, t1_, t2_ = rt
+    mx = np.float64(means[n, 0])
+    my = np.float64(means[n, 1])
+    mz = np.float64(means[n, 2])
+    px = r00 * mx + r01 * my + r02 * mz + t0_
+    py = r10 * mx + r11 * my + r12 * mz + t1_
+    pz = r20 * mx + r21 * my + r22 * mz + t2_
+    inz = (pz > near) & (pz < far)
+    iz = 1.0 / (pz if inz else 1.0)
+    u = px * iz
+    v = py * iz
+    uc = min(max(u, ulo), uhi)
+    vc = min(max(v, vlo), vhi)
+    fxz = fx * iz
+    fyz = fy * iz
+    return (px, py, pz, iz, u, v, uc, vc, fxz, fyz,
+            fxz * (r00 - uc * r20), fxz * (r01 - uc * r21), fxz * (r02 - uc * r22),
+            fyz * (r10 - vc * r20), fyz * (r11 - vc * r21), fyz * (r12 - vc * r22))
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _quat_scale_soa(quats, scales, lo, hi, Ms):
     """Ms [9, chunk] <- M = R(q) diag(s) (row-major entries) of Gaussians lo..hi-1."""
@@ -1012,46 +1044,15 @@ def project_fwd(means, quats, scales, opac, viewmats, Ks, width, height, near, f
             fy = cams[c, 1]
             cx = cams[c, 2]
             cy = cams[c, 3]
-            ulo = cams[c, 4]
-            uhi = cams[c, 5]
-            vlo = cams[c, 6]
-            vhi = cams[c, 7]
-            r00 = viewmats[c, 0, 0]
-            r01 = viewmats[c, 0, 1]
-            r02 = viewmats[c, 0, 2]
-            r10 = viewmats[c, 1, 0]
-            r11 = viewmats[c, 1, 1]
-            r12 = viewmats[c, 1, 2]
-            r20 = viewmats[c, 2, 0]
-            r21 = viewmats[c, 2, 1]
-            r22 = viewmats[c, 2, 2]
-            t0_ = viewmats[c, 0, 3]
-            t1_ = viewmats[c, 1, 3]
-            t2_ = viewmats[c, 2, 3]
+            rt = _view_rt(viewmats, c)
             for n in range(lo, hi):
                 i = n - lo
-                mx = np.float64(means[n, 0])
-                my = np.float64(means[n, 1])
-                mz = np.float64(means[n, 2])
-                px = r00 * mx + r01 * my + r02 * mz + t0_
-                py = r10 * mx + r11 * my + r12 * mz + t1_
-                pz = r20 * mx + r21 * my + r22 * mz + t2_
+                (px, py, pz, iz, u, v, uc, vc, fxz, fyz,
+                 a0, a1, a2, b0, b1, b2) = _cam_jacobian(means, n, rt, fx, fy, cams[c, 4], cams[c, 5],
+                                                         cams[c, 6], cams[c, 7], near, far)
                 inz = (pz > near) & (pz < far)
-                iz = 1.0 / (pz if inz else 1.0)
-                u = px * iz
-                v = py * iz
                 u2 = fx * u + cx
                 v2 = fy * v + cy
-                uc = min(max(u, ulo), uhi)
-                vc = min(max(v, vlo), vhi)
-                fxz = fx * iz
-                fyz = fy * iz
-                a0 = fxz * (r00 - uc * r20)
-                a1 = fxz * (r01 - uc * r21)
-                a2 = fxz * (r02 - uc * r22)
-                b0 = fyz * (r10 - vc * r20)
-                b1 = fyz * (r11 - vc * r21)
-                b2 = fyz * (r12 - vc * r22)
                 ak0 = a0 * Ms[0, i] + a1 * Ms[3, i] + a2 * Ms[6, i]
                 ak1 = a0 * Ms[1, i] + a1 * Ms[4, i] + a2 * Ms[7, i]
                 ak2 = a0 * Ms[2, i] + a1 * Ms[5, i] + a2 * Ms[8, i]
@@ -1102,41 +1103,14 @@ def project_bwd(means, quats, scales, viewmats, Ks, width, height, near, far, ep
             uhi = cams[c, 5]
             vlo = cams[c, 6]
             vhi = cams[c, 7]
-            r00 = viewmats[c, 0, 0]
-            r01 = viewmats[c, 0, 1]
-            r02 = viewmats[c, 0, 2]
-            r10 = viewmats[c, 1, 0]
-            r11 = viewmats[c, 1, 1]
-            r12 = viewmats[c, 1, 2]
-            r20 = viewmats[c, 2, 0]
-            r21 = viewmats[c, 2, 1]
-            r22 = viewmats[c, 2, 2]
-            t0_ = viewmats[c, 0, 3]
-            t1_ = viewmats[c, 1, 3]
-            t2_ = viewmats[c, 2, 3]
+            rt = _view_rt(viewmats, c)
+            r00, r01, r02, r10, r11, r12, r20, r21, r22, t0_, t1_, t2_ = rt
             for n in range(lo, hi):
                 i = n - lo
                 gz = np.float64(v_z[c, n])
-                mx = np.float64(means[n, 0])
-                my = np.float64(means[n, 1])
-                mz = np.float64(means[n, 2])
-                px = r00 * mx + r01 * my + r02 * mz + t0_
-                py = r10 * mx + r11 * my + r12 * mz + t1_
-                pz = r20 * mx + r21 * my + r22 * mz + t2_
+                (px, py, pz, iz, u, v, uc, vc, fxz, fyz,
+                 T00, T01, T02, T10, T11, T12) = _cam_jacobian(means, n, rt, fx, fy, ulo, uhi, vlo, vhi, near, far)
                 inz = (pz > near) & (pz < far)
-                iz = 1.0 / (pz if inz else 1.0)
-                u = px * iz
-                v = py * iz
-                uc = min(max(u, ulo), uhi)
-                vc = min(max(v, vlo), vhi)
-                fxz = fx * iz
-                fyz = fy * iz
-                T00 = fxz * (r00 - uc * r20)
-                T01 = fxz * (r01 - uc * r21)
-                T02 = fxz * (r02 - uc * r22)
-                T10 = fyz * (r10 - vc * r20)
-                T11 = fyz * (r11 - vc * r21)
-                T12 = fyz * (r12 - vc * r22)
                 m00 = Ms[0, i]
                 m01 = Ms[1, i]
                 m02 = Ms[2, i]

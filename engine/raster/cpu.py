@@ -57,6 +57,15 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     return offsets, ids, spans, tiles_x, tiles_y
 
 
+def _composite_buffers(C: int, height: int, width: int, D: int, M: int):
+    """What ``rasterize_fwd`` writes (features [C,H,W,D] and alphas [C,H,W], zero; final
+    transmittance [C,H,W], one; last index [C,H,W], -1) and the packed intersections [M, 10]
+    ``pack`` / ``pack_split`` fill."""
+    return (np.zeros((C, height, width, D), np.float32), np.zeros((C, height, width), np.float32),
+            np.ones((C, height, width), np.float32), np.full((C, height, width), -1, np.int32),
+            np.empty((M, 10), np.float32))
+
+
 class _RasterizeToPixels(torch.autograd.Function):
     """means2d [C,N,2], conics [C,N,3], opacities [C,N], feats [C,N,4] (float32) ->
     features [C,H,W,4], alphas [C,H,W,1]; backward by the numba kernels."""
@@ -67,11 +76,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         k = _load()
         C, N, D = feats.shape
         offsets, ids, spans, tiles_x, tiles_y = binning
-        out_feat = np.zeros((C, height, width, D), np.float32)
-        out_alpha = np.zeros((C, height, width), np.float32)
-        final_t = np.ones((C, height, width), np.float32)
-        last_i = np.full((C, height, width), -1, np.int32)
-        packed = np.empty((ids.shape[0], 10), np.float32)
+        out_feat, out_alpha, final_t, last_i, packed = _composite_buffers(C, height, width, D, ids.shape[0])
         if ids.shape[0] > 0:
             k.pack(_np(means2d).reshape(C * N, 2), _np(conics).reshape(C * N, 3),
                    _np(opacities).reshape(C * N), _np(feats).reshape(C * N, D), ids, packed)
@@ -123,11 +128,8 @@ class _RasterizeFused(torch.autograd.Function):
         k = _load()
         C, N = z.shape
         offsets, ids, spans, tiles_x, tiles_y = binning
-        out_feat = np.zeros((C, height, width, k.N_FEAT), np.float32)
-        out_alpha = np.zeros((C, height, width), np.float32)
-        final_t = np.ones((C, height, width), np.float32)
-        last_i = np.full((C, height, width), -1, np.int32)
-        packed = np.empty((ids.shape[0], 10), np.float32)
+        out_feat, out_alpha, final_t, last_i, packed = _composite_buffers(C, height, width, k.N_FEAT,
+                                                                          ids.shape[0])
         if ids.shape[0] > 0:
             k.pack_split(_np(means2d).reshape(C * N, 2), _np(conics).reshape(C * N, 3),
                          _np(opacities), _np(rgb).reshape(C * N, 3), _np(z).reshape(C * N), N,
