@@ -28,12 +28,16 @@ and all of them with ``"nearest"``, take the displacement of the nearest Gaussia
 ``T_j`` within ``traj_carry_hidden`` x extent. Measured at 1000 steps (README "Births that
 move"): none of them pays yet.
 
-How long they live (``birth_static_lifespan``, off by default): the temporal std barely trains
+How long they live (``birth_static_lifespan``, on at 16 with ``birth_depth_guard`` 0.8): the temporal std barely trains
 (fast, 1000 steps: median 0.45 interval for an initial 0.5), and 73 % of the fast scene's births
 sit on pixels a neighbouring RGB instant of the same camera repeats (:func:`unchanged_pixels`):
 a static surface the render missed, which should not fade between instants. Those get
 ``birth_static_lifespan`` x the frame interval (16: fast +0.56 / +0.12 dB between instants,
 demo +0.14 / +0.37, ``between`` -0.04 / +0.01; README "How long born Gaussians live").
+Where the stereo match is wrong (periodic texture, low resolution) such a Gaussian floats in
+front of the surface it shows for all that time; ``birth_depth_guard`` drops the static births
+whose stereo depth lies well in front of an opaque render (:func:`stereo_in_front`; README
+"Births at a wrong stereo depth").
 """
 from __future__ import annotations
 
