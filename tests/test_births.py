@@ -244,3 +244,63 @@ def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life)
         np.testing.assert_allclose(std[on_patch], 0.5, rtol=1e-5)
         np.testing.assert_allclose(std[~on_patch], 4.0, rtol=1e-5)
         assert rec["static"] == born - 25
+
+
+def test_stereo_in_front_needs_an_opaque_render_and_the_ratio():
+    from engine.train.births import stereo_in_front
+
+    stereo = np.array([3.0, 4.5, 3.0, 6.0])
+    render = np.array([5.0, 5.0, 5.0, 5.0])
+    alpha = np.array([0.9, 0.9, 0.2, 0.9])
+    np.testing.assert_array_equal(stereo_in_front(stereo, render, alpha, 0.8), [True, False, False, False])
+
+
+@pytest.mark.parametrize("guard", [0.0, 0.8])
+def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard):
+    """birth_depth_guard: the model already has an opaque wall 5 m away (black); the frame shows
+    it grey at every instant and stereo puts it at 3 m on the left half (a wrong match: dropped)
+    and at 4.5 m on the right (kept); a patch seen only at its instant, at 3 m, is a moving
+    object in front of the wall and is born whatever the guard."""
+    from types import SimpleNamespace
+
+    from engine.cameras import View
+    from engine.scene.gaussians import rgb_to_sh
+    from engine.train.births import spawn_at_instant
+
+    knots = [0.0, 0.1, 0.2]
+    gx, gz = np.meshgrid(np.linspace(-3.5, 3.5, 48), np.linspace(-2.7, 2.7, 36))
+    wall = np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], 1)
+    model = trajectory_model(knots, len(wall))
+    g = model.gaussians
+    with torch.no_grad():
+        g.means.copy_(torch.as_tensor(wall, dtype=torch.float32))
+        g.log_scales.fill_(math.log(0.15))
+        g.opacity_logits.fill_(6.0)
+        g.sh_dc.copy_(rgb_to_sh(torch.zeros(len(wall), 1, 3)))
+    view0 = _flat_view()
+    H, W = view0.intrinsics.height, view0.intrinsics.width
+    images = {t: np.full((H, W, 3), 0.6, np.float32) for t in knots}
+    images[0.1][20:30, 10:20] = 0.95                      # moving: only at 0.1
+    frames = [SimpleNamespace(camera="L", time=t) for t in knots]
+    cfg = get_preset("fast").replace(birth_error=0.15, birth_stride=2, birth_max=100000, birth_lifespan=0.5,
+                                     birth_static_lifespan=0.0, birth_depth_guard=guard, birth_motion="none")
+    depth, ok = np.full((H, W), 4.5, np.float32), np.ones((H, W), bool)
+    depth[:, : W // 2] = 3.0
+    trainer = SimpleNamespace(
+        cfg=cfg, model=model, seed=0, device="cpu",
+        capture=SimpleNamespace(view=lambda f: View(view0.intrinsics, view0.c2w, time=f.time)),
+        _stereo_priors={id(f): (depth, ok) for f in frames},
+        _item_images={("L", round(t, 9)): torch.from_numpy(images[t])[None] for t in knots})
+    n0 = g.num_gaussians
+    rec = spawn_at_instant(trainer, frames, 0.1)
+    everywhere = (H // 2) * (W // 2)                      # the stride-2 grid
+    patch = 5 * 5
+    born_cols = g.sh_dc.detach()[n0:, 0, 0]
+    on_patch = int((born_cols > float(rgb_to_sh(torch.tensor(0.8)))).sum())
+    if guard == 0:
+        assert rec["born"] == everywhere and "guarded" not in rec and on_patch == patch
+    else:
+        left_wall = (H // 2) * (W // 4) - patch           # the left half's grid pixels but the patch's
+        assert rec["guarded"] == left_wall and rec["born"] == everywhere - left_wall and on_patch == patch
+        cam_y = g.means.detach()[n0:, 1].numpy()          # depth 5 - |y - (-5)|: wall births at 4.5 m
+        assert (np.abs(cam_y[: rec["born"]] + 5.0 - 4.5) < 1e-3).sum() == rec["born"] - patch

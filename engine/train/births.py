@@ -28,12 +28,16 @@ and all of them with ``"nearest"``, take the displacement of the nearest Gaussia
 ``T_j`` within ``traj_carry_hidden`` x extent. Measured at 1000 steps (README "Births that
 move"): none of them pays yet.
 
-How long they live (``birth_static_lifespan``, off by default): the temporal std barely trains
+How long they live (``birth_static_lifespan``, on at 16 with ``birth_depth_guard`` 0.8): the temporal std barely trains
 (fast, 1000 steps: median 0.45 interval for an initial 0.5), and 73 % of the fast scene's births
 sit on pixels a neighbouring RGB instant of the same camera repeats (:func:`unchanged_pixels`):
 a static surface the render missed, which should not fade between instants. Those get
 ``birth_static_lifespan`` x the frame interval (16: fast +0.56 / +0.12 dB between instants,
 demo +0.14 / +0.37, ``between`` -0.04 / +0.01; README "How long born Gaussians live").
+Where the stereo match is wrong (periodic texture, low resolution) such a Gaussian floats in
+front of the surface it shows for all that time; ``birth_depth_guard`` drops the static births
+whose stereo depth lies well in front of an opaque render (:func:`stereo_in_front`; README
+"Births at a wrong stereo depth").
 """
 from __future__ import annotations
 
@@ -51,8 +55,8 @@ from .scene_flow import (
     propagate_to_hidden,
 )
 
-__all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "unchanged_pixels", "ensure_temporal_opacity",
-           "spawn_at_instant", "backward_displacement", "component_flow", "move_born"]
+__all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "unchanged_pixels", "stereo_in_front",
+           "ensure_temporal_opacity", "spawn_at_instant", "backward_displacement", "component_flow", "move_born"]
 
 BIRTH_MOTIONS = ("none", "lk", "dis", "match", "nearest")  # lk / dis: scene_flow.image_flow; match: component_flow
 
@@ -95,6 +99,14 @@ def unchanged_pixels(image: np.ndarray, neighbours: list, rows: np.ndarray, cols
     return out
 
 
+def stereo_in_front(stereo: np.ndarray, render_depth: np.ndarray, render_alpha: np.ndarray,
+                    ratio: float) -> np.ndarray:
+    """bool [M]: the stereo depth is less than ``ratio`` x the render's expected depth where the
+    render is opaque (alpha >= 0.5): the birth would float in front of a surface the model
+    already has (``birth_depth_guard``)."""
+    return (render_alpha >= 0.5) & (stereo < ratio * render_depth)
+
+
 def spawn_at_instant(trainer, frames, t: float) -> dict:
     """Births at the train frames of instant ``t`` (see the module docstring). Returns the
     record ``{"birth_at", "born", "total"}``, also appended to ``trainer.birth_info`` (run.json's
@@ -108,33 +120,44 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     dt = float(np.median(np.diff(knots))) if len(knots) > 1 else 1.0 / 30.0
     rng = np.random.default_rng(int(trainer.seed) * 7919 + int(round(t * 1e6)))
     static_life = float(getattr(cfg, "birth_static_lifespan", 0.0))
-    by_key = {(f.camera, round(float(f.time), 9)): f for f in frames} if static_life > 0 else {}
+    guard = float(getattr(cfg, "birth_depth_guard", 0.0))
+    find_static = static_life > 0 or guard > 0
+    by_key = {(f.camera, round(float(f.time), 9)): f for f in frames} if find_static else {}
     j = int(np.argmin([abs(k - t) for k in knots])) if len(knots) else 0
-    pts, cols, sizes, still = [], [], [], []
+    pts, cols, sizes, still, guarded = [], [], [], [], 0
     for f in frames:
         if abs(float(f.time) - t) > 1e-6 or id(f) not in pri:
             continue
         view = trainer.capture.view(f)
         vt = view_tensors(view, trainer.device)
         with torch.no_grad():
-            rgb = model.render(vt, t, render_depth=False)[0][0].clamp(0, 1).cpu().numpy()
+            rgb, alpha, meta, _ = model.render(vt, t, render_depth=guard > 0)
+        rgb = rgb[0].clamp(0, 1).cpu().numpy()
         img = frame_image(trainer, f)
         depth, ok = pri[id(f)]
         r, c = birth_candidates(rgb, img, depth, ok, cfg.birth_error, int(cfg.birth_stride), int(cfg.birth_max), rng)
+        if find_static and len(r):
+            nbrs = [frame_image(trainer, by_key[k]) for k in
+                    ((f.camera, round(float(knots[i]), 9)) for i in (j - 1, j + 1) if 0 <= i < len(knots))
+                    if k in by_key]
+            unchanged = unchanged_pixels(img, nbrs, r, c, cfg.birth_error)
+            if guard > 0:
+                keep = ~(unchanged & stereo_in_front(depth[r, c], meta["depths"][0, ..., 0].cpu().numpy()[r, c],
+                                                     alpha[0, ..., 0].cpu().numpy()[r, c], guard))
+                guarded += int((~keep).sum())
+                r, c, unchanged = r[keep], c[keep], unchanged[keep]
+            still.append(unchanged)
         if len(r) == 0:
             continue
         z = depth[r, c].astype(np.float64)
         pts.append(backproject_pixels(view, np.stack([c + 0.5, r + 0.5], 1), z))
         cols.append(img[r, c])
         sizes.append(z / view.intrinsics.fx * cfg.birth_stride * 0.5)  # half the grid step, in metres
-        if static_life > 0:
-            nbrs = [frame_image(trainer, by_key[k]) for k in
-                    ((f.camera, round(float(knots[i]), 9)) for i in (j - 1, j + 1) if 0 <= i < len(knots))
-                    if k in by_key]
-            still.append(unchanged_pixels(img, nbrs, r, c, cfg.birth_error))
     records = trainer.__dict__.setdefault("birth_info", [])
     if not pts:
         records.append({"birth_at": float(t), "born": 0, "total": g.num_gaussians})
+        if guard > 0:
+            records[-1]["guarded"] = guarded
         return records[-1]
     ensure_temporal_opacity(g)
     dev = g.means.device
@@ -163,6 +186,8 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     records.append({"birth_at": float(t), "born": int(m), "total": g.num_gaussians})
     if static_life > 0:
         records[-1]["static"] = int((life == static_life).sum())
+    if guard > 0:
+        records[-1]["guarded"] = guarded
     if cfg.birth_motion != "none":
         records[-1].update(move_born(trainer, frames, knots, t, g.num_gaussians - m))
     return records[-1]
