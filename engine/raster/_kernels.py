@@ -499,7 +499,14 @@ BG = 10 * TS2 + GL  # (+ GL: room for the row pair of (r & 7) = 7 as far as LLVM
 GX, GY, GA, GB, GC, GO, GF0, GF1, GF2, GF3 = [BG + j * GL for j in range(GN)]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp", "reassoc"})
+# No "reassoc" in the backward kernels' fastmath: with it, LLVM may reorder the per-Gaussian
+# sums differently when rasterize_bwd (parallel) is compiled in this process than in the code
+# numba caches for the next process, so a run on a cold numba cache gave other gradients (and,
+# 200 demo steps later, 23,943 against 24,305 Gaussians) than every later run; without it the
+# bits are the same either way (tests/test_compile_reproducible.py). Cost measured at
+# 320x240 / 50k, load ~1: composite backward 9.0 -> 10.5 ms wall, forward + backward ~+1.6 ms
+# (README "Reproducible across numba's cache").
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp"})
 def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, final_t, last_i, v_feat,
                v_alpha, v_isect):
     c = tile // n_tiles
@@ -649,7 +656,7 @@ def rasterize_fwd(packed, spans, offsets, n_cams, height, width, tile_size,
                       tiles_x, n_tiles, amax, out_feat, out_alpha, final_t, last_i)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "nsz"})
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"nsz"})  # no "reassoc": see _bwd_tile8
 def _bwd_tile(tile, packed, spans, offsets, height, width, tile_size,
               tiles_x, n_tiles, amax, final_t, last_i, v_feat, v_alpha, v_isect):
     ts2 = tile_size * tile_size
