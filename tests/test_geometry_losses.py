@@ -88,6 +88,27 @@ def test_opacity_decay_only_touches_visible_gaussians():
     assert torch.allclose(op[[0, 2]], torch.full((2,), 0.45)) and torch.allclose(op[[1, 3, 4]], torch.full((3,), 0.5))
 
 
+def test_opacity_decay_acts_in_its_window_of_the_schedule():
+    from types import SimpleNamespace
+
+    from engine.train.geometry_losses import geometry_post_step_hooks
+    from engine.train.presets import get_preset
+
+    cfg = get_preset("fast", {"opacity_decay": 0.9, "opacity_decay_from": 0.5, "opacity_decay_until": 0.8,
+                              "iterations": 10, "init_backdrop": 0.0})
+    (hook,) = geometry_post_step_hooks(cfg)
+    logits = torch.zeros(4)
+    tr = SimpleNamespace(cfg=cfg, model=SimpleNamespace(gaussians=SimpleNamespace(opacity_logits=logits,
+                                                                                  num_gaussians=4)))
+    seen = {"radii": torch.ones(1, 4, dtype=torch.int32)}
+    hook(tr, 4, {}, seen)
+    assert torch.equal(logits, torch.zeros(4))  # step 4 of 10: before the start
+    hook(tr, 5, {}, seen)
+    assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
+    hook(tr, 8, {}, seen)  # step 8 of 10: past the end, opacities are the photometric loss's again
+    assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
+
+
 def test_background_and_partners():
     from engine.train.presets import get_preset
 

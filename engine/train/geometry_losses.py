@@ -144,8 +144,10 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
     return terms
 
 
-def _opacity_decay_hook(factor: float):
+def _opacity_decay_hook(factor: float, start_fraction: float = 0.0, end_fraction: float = 1.0):
     def hook(trainer, step: int, item: dict, meta: dict) -> None:
+        if not start_fraction * trainer.cfg.iterations <= step < end_fraction * trainer.cfg.iterations:
+            return
         radii = meta.get("radii")
         g = trainer.model.gaussians
         if radii is None or radii.shape[1] != g.num_gaussians:
@@ -180,7 +182,8 @@ def geometry_post_step_hooks(cfg) -> list:
     if getattr(cfg, "init_backdrop", 0.0) > 0 and getattr(cfg, "backdrop_opacity", 0.0) > 0:
         hooks.append(_backdrop_opacity_hook(cfg.backdrop_opacity))
     if 0.0 < getattr(cfg, "opacity_decay", 1.0) < 1.0:
-        hooks.append(_opacity_decay_hook(cfg.opacity_decay))
+        hooks.append(_opacity_decay_hook(cfg.opacity_decay, getattr(cfg, "opacity_decay_from", 0.0),
+                                         getattr(cfg, "opacity_decay_until", 1.0)))
     return hooks
 
 
