@@ -176,9 +176,11 @@ def test_backdrop_gaussians_get_their_opacity_once_at_the_first_step():
     from engine.train.geometry_losses import geometry_post_step_hooks
     from engine.train.presets import get_preset
 
-    cfg = get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9})
+    no_decay = {"opacity_decay": 1.0}  # the default's opacity decay is a hook of its own
+    cfg = get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9, **no_decay})
     hooks = geometry_post_step_hooks(cfg)
-    assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.0}))
+    assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.0, **no_decay}))
+    assert len(geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9}))) == 2
     logits = torch.full((10, 1), float(torch.logit(torch.tensor(0.1))))
     g = SimpleNamespace(opacity_logits=torch.nn.Parameter(logits.clone()), num_gaussians=10)
     tr = SimpleNamespace(init_info={"backdrop": 4, "num_points": 10}, model=SimpleNamespace(gaussians=g))
