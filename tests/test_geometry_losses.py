@@ -93,19 +93,28 @@ def test_opacity_decay_acts_in_its_window_of_the_schedule():
 
     from engine.train.geometry_losses import geometry_post_step_hooks
     from engine.train.presets import get_preset
+    from engine.train.schedule import Schedule
 
     cfg = get_preset("fast", {"opacity_decay": 0.9, "opacity_decay_from": 0.5, "opacity_decay_until": 0.8,
                               "iterations": 10, "init_backdrop": 0.0})
     (hook,) = geometry_post_step_hooks(cfg)
     logits = torch.zeros(4)
-    tr = SimpleNamespace(cfg=cfg, model=SimpleNamespace(gaussians=SimpleNamespace(opacity_logits=logits,
-                                                                                  num_gaussians=4)))
+    tr = SimpleNamespace(cfg=cfg, schedule=Schedule.plan(10),
+                         model=SimpleNamespace(gaussians=SimpleNamespace(opacity_logits=logits, num_gaussians=4)))
     seen = {"radii": torch.ones(1, 4, dtype=torch.int32)}
     hook(tr, 4, {}, seen)
     assert torch.equal(logits, torch.zeros(4))  # step 4 of 10: before the start
     hook(tr, 5, {}, seen)
     assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
     hook(tr, 8, {}, seen)  # step 8 of 10: past the end, opacities are the photometric loss's again
+    assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
+    # a budget run re-planned to 20 real steps at step 2: the window is on the schedule's clock
+    # (virtual step 2 + (s - 2) * 8 / 18), not on cfg.iterations: real step 8 is virtual 4.7
+    tr.schedule.replan(2, 20)
+    logits.zero_()
+    hook(tr, 8, {}, seen)
+    assert torch.equal(logits, torch.zeros(4))
+    hook(tr, 14, {}, seen)  # virtual 7.3: inside [5, 8)
     assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
 
 

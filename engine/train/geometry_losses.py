@@ -146,7 +146,7 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
 
 def _opacity_decay_hook(factor: float, start_fraction: float = 0.0, end_fraction: float = 1.0):
     def hook(trainer, step: int, item: dict, meta: dict) -> None:
-        if not start_fraction * trainer.cfg.iterations <= step < end_fraction * trainer.cfg.iterations:
+        if not trainer.schedule.in_fraction_window(step, start_fraction, end_fraction):
             return
         radii = meta.get("radii")
         g = trainer.model.gaussians

@@ -132,6 +132,12 @@ class Schedule:
         """Gather densification statistics at ``step`` (before the window's end)."""
         return self.virtual(step) < self.densify_window(cfg)[1]
 
+    def in_fraction_window(self, step: int, start: float, end: float) -> bool:
+        """``start <= v / N < end`` at ``step``: a window given as fractions of the run (the
+        opacity decay's ``opacity_decay_from`` / ``opacity_decay_until``)."""
+        v = self.virtual(step)
+        return start * self.nominal <= v < end * self.nominal
+
     def sh_degree(self, step: int, cfg) -> int:
         """SH bands active at ``step``: one more every ``sh_step_fraction`` of the run."""
         return min(cfg.sh_degree, int(self.virtual(step) / max(1, cfg.sh_step_fraction * self.nominal)))
