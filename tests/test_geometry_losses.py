@@ -118,6 +118,30 @@ def test_opacity_decay_acts_in_its_window_of_the_schedule():
     assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
 
 
+def test_opacity_decay_ends_with_densification_unless_told():
+    from engine.train.geometry_losses import geometry_post_step_hooks
+    from engine.train.presets import get_preset, opacity_decay_window
+
+    assert get_preset("fast").opacity_decay_until is None
+    assert opacity_decay_window(get_preset("fast")) == (0.0, get_preset("fast").densify_until)
+    assert opacity_decay_window(get_preset("fast", {"densify_until": 0.5})) == (0.0, 0.5)  # follows it
+    assert opacity_decay_window(get_preset("fast", {"densify_until": 0.5, "opacity_decay_until": 0.9})) == (0.0, 0.9)
+    # a --set from the command line arrives as a string and becomes a float
+    assert get_preset("fast", {"opacity_decay_until": "1"}).opacity_decay_until == 1.0
+    from types import SimpleNamespace
+
+    from engine.train.schedule import Schedule
+    for until, decayed_at_6 in ((0.5, False), (0.8, True)):
+        cfg = get_preset("fast", {"opacity_decay": 0.9, "densify_until": until, "iterations": 10,
+                                  "init_backdrop": 0.0})
+        (hook,) = geometry_post_step_hooks(cfg)
+        logits = torch.zeros(2)
+        tr = SimpleNamespace(cfg=cfg, schedule=Schedule.plan(10),
+                             model=SimpleNamespace(gaussians=SimpleNamespace(opacity_logits=logits, num_gaussians=2)))
+        hook(tr, 6, {}, {"radii": torch.ones(1, 2, dtype=torch.int32)})
+        assert bool((logits != 0).all()) == decayed_at_6
+
+
 def test_background_and_partners():
     from engine.train.presets import get_preset
 

@@ -28,6 +28,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .presets import opacity_decay_window
+
 
 def pixel_grid(height: int, width: int, device=None) -> torch.Tensor:
     """[H, W, 2] pixel-centre coordinates (u + 0.5, v + 0.5) of the engine's convention."""
@@ -182,8 +184,7 @@ def geometry_post_step_hooks(cfg) -> list:
     if getattr(cfg, "init_backdrop", 0.0) > 0 and getattr(cfg, "backdrop_opacity", 0.0) > 0:
         hooks.append(_backdrop_opacity_hook(cfg.backdrop_opacity))
     if 0.0 < getattr(cfg, "opacity_decay", 1.0) < 1.0:
-        hooks.append(_opacity_decay_hook(cfg.opacity_decay, getattr(cfg, "opacity_decay_from", 0.0),
-                                         getattr(cfg, "opacity_decay_until", 1.0)))
+        hooks.append(_opacity_decay_hook(cfg.opacity_decay, *opacity_decay_window(cfg)))
     return hooks
 
 

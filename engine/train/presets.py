@@ -136,8 +136,8 @@ class TrainConfig:
     lambda_binocular: float = 0.0     # L1 of the partner view warped through the rendered depth (Binocular3DGS: 0.5)
     lambda_depth_smooth: float = 0.0  # edge-aware smoothness of the rendered depth (measured: 0.05)
     # x opacity of the Gaussians a step sees (Binocular3DGS: 0.995); 1 = off. It acts from
-    # opacity_decay_from until opacity_decay_until (fractions of the schedule): until 0.7, the end of
-    # densification, whose opacity prune removes the Gaussians it fades; after it opacities recover
+    # opacity_decay_from until opacity_decay_until (fractions of the schedule; None: densify_until,
+    # the end of densification, 0.7), whose opacity prune removes the Gaussians it fades; after it opacities recover
     # under the photometric loss alone. 1000 fast steps, full model, seeds 0 / 1, eval all frames, on
     # minus off: novel +0.44 / +0.10, between +0.06 / +0.45, demo -0.14 / +0.54, fast -0.08 / -0.11 dB,
     # LPIPS lower on all eight runs; decaying to the end costs fast -0.33 / -0.36 and demo -0.41 /
@@ -145,7 +145,7 @@ class TrainConfig:
     # README "More steps, worse novel views")
     opacity_decay: float = 0.995
     opacity_decay_from: float = 0.0
-    opacity_decay_until: float = 0.7
+    opacity_decay_until: float | None = None  # None: densify_until (opacity_decay_window)
     random_background: bool = False   # random background per step (with init_backdrop 0.3: demo -1.7 dB, off)
     init_backdrop: float = 0.3        # points beyond each image border (this fraction wide) on the dominant planes
     init_planes: bool = True          # stereo holes take the dominant planes' depth where it agrees (geometry.planes)
@@ -328,6 +328,16 @@ def block_weight(cfg: TrainConfig) -> float:
     if cfg.block_loss_weight is not None:
         return float(cfg.block_loss_weight)
     return 1.0 if cfg.motion == "hexplane" else 0.0
+
+
+def opacity_decay_window(cfg: TrainConfig) -> tuple[float, float]:
+    """(from, until) of the opacity decay as fractions of the schedule: ``opacity_decay_until``,
+    or when it is None ``densify_until``, so the decay ends where densification's opacity prune
+    does whatever the densification window is set to."""
+    until = getattr(cfg, "opacity_decay_until", None)
+    if until is None:
+        until = getattr(cfg, "densify_until", 1.0)
+    return float(getattr(cfg, "opacity_decay_from", 0.0)), float(until)
 
 
 def apply_overrides(cfg: TrainConfig, overrides: dict | None) -> TrainConfig:
