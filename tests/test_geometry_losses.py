@@ -232,6 +232,12 @@ def test_cover_loss_sees_cracks_not_the_space_around_the_scene():
     loss.backward()
     assert float(alpha.grad[19, 30]) < 0 and float(alpha.grad[5, 5]) == 0.0  # raise alpha in the crack only
     assert cover_loss(torch.zeros(8, 8), 3) is None
+    # a band along the image border is the view looking past the scene's edge, not a crack
+    edge = torch.ones(20, 20)
+    edge[:2] = 0.0
+    edge[:, -3:] = 0.0
+    m = crack_mask(edge, 9)
+    assert not bool(m[:2].any()) and not bool(m[:, -3:].any()) and bool(m[10, 10])
 
 
 def test_cover_term_raises_alpha_at_a_new_view(tmp_path):
