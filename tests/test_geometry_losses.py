@@ -273,3 +273,37 @@ def test_cover_term_raises_alpha_at_a_new_view(tmp_path):
         holes[lam] = total
     print(holes)
     assert holes[4.0] < holes[0.0]
+
+
+def test_seen_from_marks_what_the_source_view_sees():
+    import math
+
+    from engine.train.geometry_losses import orbit_view, seen_from
+
+    vm = torch.eye(4)[None]
+    vm[0, 2, 3] = 2.0
+    vt = {"viewmat": vm, "K": torch.tensor([[[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]]), "width": 100,
+          "height": 80, "campos": torch.tensor([0.0, 0, -2]), "time": 0.0}
+    assert bool(seen_from(vt, vt, 2.0).all())
+    turned = orbit_view(vt, 2.0, math.pi / 2, math.radians(40))  # about the camera's y axis: sideways
+    m = seen_from(turned, vt, 2.0)
+    assert m.shape == (80, 100) and bool(m[40, 50]) and 0.2 < float(m.float().mean()) < 0.95
+    assert bool(m[:, 0].all()) != bool(m[:, -1].all())  # one side leaves the source's frustum
+
+
+def test_render_grad_rows_limits_the_gradient_to_those_gaussians(tmp_path):
+    from engine.io.capture import load_capture
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
+    from tools.synthetic import write_synthetic_capture
+
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0))
+    tr = Trainer(cap, get_preset("fast", {"iterations": 2}), device="cpu", seed=0, rgb_only=True)
+    tr.init_model()
+    g = tr.model.gaussians
+    rows = torch.zeros(g.num_gaussians, dtype=torch.bool)
+    rows[::2] = True
+    _, alpha, _, _ = tr.model.render(tr.items[0], render_depth=False, grad_rows=rows)
+    alpha.sum().backward()
+    grad = g.opacity_logits.grad.reshape(g.num_gaussians)
+    assert bool((grad[~rows] == 0).all()) and bool((grad[rows] != 0).any())

@@ -23,7 +23,9 @@ measurement says it pays:
   (its median rendered depth on the optical axis), about a random axis in the image plane;
   the mean of ``1 - alpha`` over the pixels inside the render's covered region (a
   morphological closing of ``alpha > 0.5`` with a ``cover_kernel`` box: the cracks between
-  splats, not the empty space around the scene) is the loss. A floor seen at a grazing angle
+  splats, not the empty space around the scene), restricted to the pixels the step's own view
+  sees (``seen_from``, at the orbit's pivot depth), is the loss; only the Gaussians the step's
+  own render draws get its gradient (``Model4D.render(grad_rows=...)``). A floor seen at a grazing angle
   by both train cameras is made of blobs that leave gaps 20 deg above it (README "More
   steps, worse novel views"); the photometric loss never sees those gaps.
 * ``random_background`` -- each step composites over a random colour instead of the black
@@ -190,10 +192,35 @@ def crack_mask(alpha: torch.Tensor, kernel: int, covered: float = 0.5) -> torch.
     return closed[0, 0, r:r + alpha.shape[0], r:r + alpha.shape[1]] > 0.5
 
 
-def cover_loss(alpha: torch.Tensor, kernel: int) -> torch.Tensor | None:
-    """Mean of ``1 - alpha`` over :func:`crack_mask`'s pixels of ``alpha`` [H,W], divided by
-    the whole image's pixel count (a few cracks give a small loss); None when nothing is covered."""
+def seen_from(vt: dict, source: dict, depth: float) -> torch.Tensor:
+    """bool [H,W] of view ``vt``: the pixels whose ray, at ``depth`` along ``vt``'s optical
+    axis (the plane through the point it orbits), lands inside ``source``'s image, in front of
+    it. Pixels beyond the train view's frustum show what no train camera saw: asking them to be
+    covered grows Gaussians there that no photometric loss holds (fog in front of the demo's
+    wall at the eval camera, above the train cameras' frustum, in RGB-only runs of ~3000 steps)."""
+    H, W = int(vt["height"]), int(vt["width"])
+    K = vt["K"][0].double()
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    cam = torch.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1) * float(depth)
+    vm = vt["viewmat"][0].double()
+    world = (cam - vm[:3, 3]) @ vm[:3, :3]               # R^T (x - t), row vectors
+    sv = source["viewmat"][0].double()
+    xc = world @ sv[:3, :3].T + sv[:3, 3]
+    Ks = source["K"][0].double()
+    z = xc[..., 2]
+    u = Ks[0, 0] * xc[..., 0] / z.clamp_min(1e-9) + Ks[0, 2]
+    v = Ks[1, 1] * xc[..., 1] / z.clamp_min(1e-9) + Ks[1, 2]
+    return (z > 1e-9) & (u >= 0) & (u < int(source["width"])) & (v >= 0) & (v < int(source["height"]))
+
+
+def cover_loss(alpha: torch.Tensor, kernel: int, eligible: torch.Tensor | None = None) -> torch.Tensor | None:
+    """Mean of ``1 - alpha`` over :func:`crack_mask`'s pixels of ``alpha`` [H,W] (and of the
+    bool [H,W] ``eligible`` ones, when given), divided by the whole image's pixel count (a few
+    cracks give a small loss); None when there is none."""
     inside = crack_mask(alpha, kernel)
+    if eligible is not None:
+        inside = inside & eligible
     if not bool(inside.any()):
         return None
     return ((1.0 - alpha) * inside).sum() / alpha.numel()
@@ -213,8 +240,16 @@ def _cover(ctx):
     angle = math.radians(float(cfg.cover_angle_deg)) * float(rng.uniform(0.5, 1.0))
     vt = orbit_view(ctx.item, float(hit.median()), float(rng.uniform(0, 2 * math.pi)), angle,
                     float(getattr(cfg, "cover_scale", 0.5)))
-    _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False)
-    return cover_loss(alpha[0, ..., 0], int(getattr(cfg, "cover_kernel", 9)))
+    # only the Gaussians the step's own view draws may change for it: one outside every train
+    # frustum is held by no photometric loss, and grown by this term alone it became fog
+    radii = ctx.meta.get("radii")
+    drawn = None
+    if radii is not None:
+        r = radii[0]
+        drawn = (r > 0) if r.dim() == 1 else (r > 0).any(-1)
+    _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn)
+    return cover_loss(alpha[0, ..., 0], int(getattr(cfg, "cover_kernel", 9)),
+                      seen_from(vt, ctx.item, float(hit.median())).to(alpha.device))
 
 
 def geometry_loss_terms(cfg, LossTerm) -> list:
