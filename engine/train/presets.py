@@ -148,9 +148,10 @@ class TrainConfig:
     opacity_decay_until: float | None = None  # None: densify_until (opacity_decay_window)
     # cracks at a virtual view cover_angle_deg off the step's frame (geometry_losses.cover_loss); 0: off.
     # 1000 fast steps, full model, eval all frames, off -> 0.5, seeds 0 / 1: between 21.67 / 21.58 ->
-    # 24.05 / 24.02 dB, demo 22.07 / 22.05 -> 24.27 / 23.96, fast 20.99 / 21.35 -> 22.61 / 22.49, novel
-    # 23.93 / 23.81 -> 25.05 / 24.83; LPIPS lower or equal on all eight; RGB-only between s0 20.64 ->
-    # 22.49; 2.0: between s0 23.53. The step costs ~7 % more (README "No cracks at a new viewpoint")
+    # 23.99 / 24.20 dB, demo 22.07 / 22.05 -> 24.21 / 23.87, fast 20.99 / 21.35 -> 22.58 / 22.64, novel
+    # 23.93 / 23.81 -> 25.01 / 25.01; LPIPS lower on all eight; RGB-only s0 between 20.64 -> 22.65, demo
+    # 21.54 -> 24.25; 2.0 (first version): between s0 23.53. Equal time 120 s, full model, between RGB
+    # frames: +0.8 to +2.2 dB on six runs. README "No cracks at a new viewpoint"
     lambda_cover: float = 0.5
     cover_angle_deg: float = 20.0
     cover_every: int = 2              # steps between virtual renders
