@@ -27,6 +27,7 @@ def draw_reconstruction(layout, context) -> None:
     adv.label(text="Advanced")
     adv.prop(s, "motion")
     adv.prop(s, "freeze_static")
+    adv.prop(s, "close_cracks")
     adv.prop(s, "early_stop")
     row = col.row(align=True)
     row.enabled = bool(s.capture_dir) and not running

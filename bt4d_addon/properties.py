@@ -3,7 +3,7 @@
 * ``Scene.bt4d``: the capture that was imported and the reconstruction settings. Capture
   summary fields are written by ``bt4d.import_capture``; the reconstruction settings
   (preset, seconds, output_dir, device, use_spikes, and the advanced motion choice and
-  switches freeze_static / early_stop) are read by the training operator.
+  switches freeze_static / early_stop / close_cracks) are read by the training operator.
 * ``Scene.bt4d_run``: the live state of a reconstruction / path render (progress, loss,
   PSNR, ETA, status) and the metrics of the last run, which the operators update from the
   main thread (``panel_run.py`` draws it).
@@ -75,6 +75,11 @@ class BT4D_SceneSettings(PropertyGroup):
         name="Freeze Static Gaussians", default=False,
         description="Gaussians that do not move stop using the deformation field (CPOStream freezing): "
                     "faster deformation steps on scenes with a static background")
+    close_cracks: BoolProperty(
+        name="Close Cracks at New Views", default=True,
+        description="Keep what the cameras cover covered from viewpoints 10-20 degrees away (engine "
+                    "TrainConfig.lambda_cover); turn off for scenes that really show empty space through "
+                    "small gaps (wires, foliage)")
     early_stop: BoolProperty(
         name="Stop Early", default=False,
         description="Stop training when the PSNR on a few held-out eval frames stops improving "

@@ -73,7 +73,8 @@ def resolve_run_dir(scene) -> str:
 
 def advanced_overrides(settings) -> dict:
     """The advanced settings of ``scene.bt4d`` as training overrides (only those that differ
-    from the engine's defaults: a switch turned on, a motion other than the first item)."""
+    from the engine's defaults: a switch turned on, "Close Cracks" turned off, a motion other
+    than the first item)."""
     out = {}
     motion = getattr(settings, "motion", MOTION_ITEMS[0][0])
     if motion != MOTION_ITEMS[0][0]:
@@ -82,6 +83,8 @@ def advanced_overrides(settings) -> dict:
         out["freeze_static"] = True
     if getattr(settings, "early_stop", False):
         out["early_stop"] = True
+    if not getattr(settings, "close_cracks", True):
+        out["lambda_cover"] = 0.0  # on in the engine by default
     return out
 
 

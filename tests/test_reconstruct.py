@@ -252,6 +252,13 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
     assert calls[-1]["overrides"] == {"iterations": 5, "motion": "hexplane"}
     s.motion = "trajectory"
+    # "Close Cracks at New Views": on is the engine's default (nothing passed); off turns the term off
+    from engine.train.presets import get_preset
+    assert s.close_cracks and get_preset("fast").lambda_cover > 0
+    s.close_cracks = False
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"iterations": 5, "lambda_cover": 0.0}
+    s.close_cracks = True
     s.early_stop = True
     r = bpy.context.scene.bt4d_run
     assert r.status == "FINISHED" and "stopped early at step 3/5" in r.message

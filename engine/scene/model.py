@@ -154,13 +154,18 @@ class Model4D(nn.Module):
                 "opacities": opacities, "colors": colors}
 
     def render(self, vt: dict, t: float | None = None, *, background=None, fine=None, backend="auto",
-               render_depth: bool = True, motion_only: bool = False):
+               render_depth: bool = True, motion_only: bool = False, grad_rows: torch.Tensor | None = None):
         """Render one view (``view_tensors`` dict) at time ``t`` (default: the view's time).
 
+        ``grad_rows`` (bool [N]): only these Gaussians' attributes carry a gradient from this
+        render; the others are drawn but enter detached.
         Returns (rgb [1,H,W,3], alpha [1,H,W,1], meta, attributes).
         """
         t = vt["time"] if t is None else float(t)
         attrs = self.attributes(t, campos=vt["campos"], fine=fine, motion_only=motion_only)
+        if grad_rows is not None:
+            keep = grad_rows.to(attrs["means"].device)
+            attrs = {k: torch.where(keep.reshape(-1, *([1] * (v.dim() - 1))), v, v.detach()) for k, v in attrs.items()}
         bg = self.background if background is None else background
         bgs = torch.as_tensor(bg, dtype=torch.float32, device=attrs["means"].device).reshape(1, 3)
         rgb, alpha, meta = rasterization(

@@ -17,6 +17,17 @@ measurement says it pays:
   photometric loss keeps needing recover, floaters that only one view supports fade and are
   pruned by the usual ``prune_opacity`` rule. Gaussians outside the rendered view are left
   alone (so the backdrop beyond every train frustum keeps its opacity).
+* ``lambda_cover`` -- no cracks at a nearby new viewpoint: every ``cover_every`` steps the
+  step's frame is rendered again (``cover_scale`` x its resolution, same instant) from a
+  virtual camera turned by ``cover_angle_deg`` x U(0.5, 1) about the point the view looks at
+  (its median rendered depth on the optical axis), about a random axis in the image plane;
+  the mean of ``1 - alpha`` over the pixels inside the render's covered region (a
+  morphological closing of ``alpha > 0.5`` with a ``cover_kernel`` box: the cracks between
+  splats, not the empty space around the scene), restricted to the pixels the step's own view
+  sees (``seen_from``, at the orbit's pivot depth), is the loss; only the Gaussians the step's
+  own render draws get its gradient (``Model4D.render(grad_rows=...)``). A floor seen at a grazing angle
+  by both train cameras is made of blobs that leave gaps 20 deg above it (README "More
+  steps, worse novel views"); the photometric loss never sees those gaps.
 * ``random_background`` -- each step composites over a random colour instead of the black
   training background, so a transparent hole can never pass for dark scene content.
 
@@ -25,6 +36,9 @@ Functions take and return tensors with documented shapes; the trainer calls
 """
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -135,6 +149,109 @@ def _depth_smooth(ctx):
     return edge_aware_smoothness(depth[0, ..., 0], ctx.alpha[0, ..., 0], ctx.item["image"][0])
 
 
+def orbit_view(vt: dict, pivot_depth: float, axis_angle: float, angle_rad: float, scale: float = 1.0) -> dict:
+    """A view dict (``view_tensors`` keys; viewmat world->camera [1,4,4], OpenCV axes) whose
+    camera is turned by ``angle_rad`` about the point ``pivot_depth`` ahead on its optical
+    axis, about the axis ``cos(axis_angle) x_cam + sin(axis_angle) y_cam``, at ``scale`` x the
+    resolution (same field of view). The image is not copied."""
+    out = {k: v for k, v in vt.items() if k != "image"}
+    vm = vt["viewmat"][0].double()
+    R_wc, t_wc = vm[:3, :3], vm[:3, 3]
+    R_cw = R_wc.T                              # columns: camera axes in world
+    c = -R_cw @ t_wc                           # camera centre
+    p = c + float(pivot_depth) * R_cw[:, 2]    # the point the view looks at
+    a = math.cos(axis_angle) * R_cw[:, 0] + math.sin(axis_angle) * R_cw[:, 1]
+    ax = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]], dtype=torch.float64)
+    rot = torch.eye(3, dtype=torch.float64) + math.sin(angle_rad) * ax + (1 - math.cos(angle_rad)) * (ax @ ax)
+    R_cw2, c2 = rot @ R_cw, p + rot @ (c - p)
+    vm2 = torch.eye(4, dtype=torch.float64)
+    vm2[:3, :3], vm2[:3, 3] = R_cw2.T, -R_cw2.T @ c2
+    out["viewmat"] = vm2.to(vt["viewmat"].dtype)[None]
+    out["campos"] = c2.to(vt["campos"].dtype)
+    if scale != 1.0:
+        w, h = max(1, int(round(vt["width"] * scale))), max(1, int(round(vt["height"] * scale)))
+        K = vt["K"].clone()
+        K[..., 0, :] *= w / vt["width"]
+        K[..., 1, :] *= h / vt["height"]
+        out.update(K=K, width=w, height=h)
+    return out
+
+
+def crack_mask(alpha: torch.Tensor, kernel: int, covered: float = 0.5) -> torch.Tensor:
+    """bool [H,W]: the pixels inside the covered region of ``alpha`` [H,W] -- a closing
+    (dilate, then erode, ``kernel`` x ``kernel`` box) of ``alpha > covered`` -- so a crack
+    between splats is inside and the empty space around the scene's outline is not."""
+    k = max(1, int(kernel) | 1)
+    r = k // 2
+    # outside the image counts as empty: a band along the border is the view looking past the
+    # scene's edge, not a crack (read as covered, it asked Gaussians at the edge to grow outward
+    # every step, where no train view holds them: fog in RGB-only runs of ~3000 steps on the demo)
+    m = F.pad((alpha.detach() > covered).float()[None, None], (r, r, r, r))
+    dil = F.max_pool2d(m, k, stride=1, padding=r)
+    closed = -F.max_pool2d(-dil, k, stride=1, padding=r)
+    return closed[0, 0, r:r + alpha.shape[0], r:r + alpha.shape[1]] > 0.5
+
+
+def seen_from(vt: dict, source: dict, depth: float) -> torch.Tensor:
+    """bool [H,W] of view ``vt``: the pixels whose ray, at ``depth`` along ``vt``'s optical
+    axis (the plane through the point it orbits), lands inside ``source``'s image, in front of
+    it. Pixels beyond the train view's frustum show what no train camera saw: asking them to be
+    covered grows Gaussians there that no photometric loss holds (fog in front of the demo's
+    wall at the eval camera, above the train cameras' frustum, in RGB-only runs of ~3000 steps)."""
+    H, W = int(vt["height"]), int(vt["width"])
+    K = vt["K"][0].double()
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    cam = torch.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1) * float(depth)
+    vm = vt["viewmat"][0].double()
+    world = (cam - vm[:3, 3]) @ vm[:3, :3]               # R^T (x - t), row vectors
+    sv = source["viewmat"][0].double()
+    xc = world @ sv[:3, :3].T + sv[:3, 3]
+    Ks = source["K"][0].double()
+    z = xc[..., 2]
+    u = Ks[0, 0] * xc[..., 0] / z.clamp_min(1e-9) + Ks[0, 2]
+    v = Ks[1, 1] * xc[..., 1] / z.clamp_min(1e-9) + Ks[1, 2]
+    return (z > 1e-9) & (u >= 0) & (u < int(source["width"])) & (v >= 0) & (v < int(source["height"]))
+
+
+def cover_loss(alpha: torch.Tensor, kernel: int, eligible: torch.Tensor | None = None) -> torch.Tensor | None:
+    """Mean of ``1 - alpha`` over :func:`crack_mask`'s pixels of ``alpha`` [H,W] (and of the
+    bool [H,W] ``eligible`` ones, when given), divided by the whole image's pixel count (a few
+    cracks give a small loss); None when there is none."""
+    inside = crack_mask(alpha, kernel)
+    if eligible is not None:
+        inside = inside & eligible
+    if not bool(inside.any()):
+        return None
+    return ((1.0 - alpha) * inside).sum() / alpha.numel()
+
+
+def _cover(ctx):
+    cfg = ctx.trainer.cfg
+    every = max(1, int(getattr(cfg, "cover_every", 1)))
+    depth = ctx.meta.get("depths")
+    if ctx.step % every or depth is None:
+        return None
+    d, a = depth[0, ..., 0].detach(), ctx.alpha[0, ..., 0].detach()
+    hit = d[a > 0.5]
+    if hit.numel() < 16:
+        return None
+    rng = np.random.default_rng([int(getattr(ctx.trainer, "seed", 0)), int(ctx.step), 11])
+    angle = math.radians(float(cfg.cover_angle_deg)) * float(rng.uniform(0.5, 1.0))
+    vt = orbit_view(ctx.item, float(hit.median()), float(rng.uniform(0, 2 * math.pi)), angle,
+                    float(getattr(cfg, "cover_scale", 0.5)))
+    # only the Gaussians the step's own view draws may change for it: one outside every train
+    # frustum is held by no photometric loss, and grown by this term alone it became fog
+    radii = ctx.meta.get("radii")
+    drawn = None
+    if radii is not None:
+        r = radii[0]
+        drawn = (r > 0) if r.dim() == 1 else (r > 0).any(-1)
+    _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn)
+    return cover_loss(alpha[0, ..., 0], int(getattr(cfg, "cover_kernel", 9)),
+                      seen_from(vt, ctx.item, float(hit.median())).to(alpha.device))
+
+
 def geometry_loss_terms(cfg, LossTerm) -> list:
     """The enabled geometry terms as ``LossTerm`` (the trainer's class, passed in to keep
     this module free of the trainer)."""
@@ -143,6 +260,8 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
         terms.append(LossTerm("binocular", cfg.lambda_binocular, _binocular))
     if getattr(cfg, "lambda_depth_smooth", 0.0) > 0:
         terms.append(LossTerm("depth_smooth", cfg.lambda_depth_smooth, _depth_smooth))
+    if getattr(cfg, "lambda_cover", 0.0) > 0:
+        terms.append(LossTerm("cover", cfg.lambda_cover, _cover))
     return terms
 
 
