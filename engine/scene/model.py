@@ -64,6 +64,24 @@ def view_tensors(view: View, device) -> dict:
             "campos": torch.as_tensor(view.center, dtype=torch.float32, device=device), "time": float(view.time)}
 
 
+def scaled_view(item: dict, scale: float) -> dict:
+    """A trainer view dict (viewmat, K, width, height, ...) at ``scale`` x its resolution
+    (same field of view), without the image. Scales that do not divide the size evenly are
+    rounded to whole pixels."""
+    vt = {k: v for k, v in item.items() if k != "image"}
+    if scale == 1.0:
+        return vt
+    w, h = max(1, int(round(item["width"] * scale))), max(1, int(round(item["height"] * scale)))
+    sx, sy = w / item["width"], h / item["height"]
+    K = item["K"].clone()
+    K[..., 0, 0] *= sx
+    K[..., 0, 2] *= sx
+    K[..., 1, 1] *= sy
+    K[..., 1, 2] *= sy
+    vt.update(K=K, width=w, height=h)
+    return vt
+
+
 def near_plane_for_extent(extent: float) -> float:
     """gsplat's 0.01 near plane for scenes of metres, scaled down with tiny scenes so that a
     capture of extent 1e-3 is not culled whole (found by the stress suite)."""

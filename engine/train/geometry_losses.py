@@ -42,6 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..scene.model import scaled_view
 from .presets import opacity_decay_window
 
 
@@ -52,6 +53,23 @@ def pixel_grid(height: int, width: int, device=None) -> torch.Tensor:
     return torch.stack([u, v], -1)
 
 
+def project_into(depth_a: torch.Tensor, K_a: torch.Tensor, viewmat_a: torch.Tensor, K_b: torch.Tensor,
+                 viewmat_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where view a's pixels land in view b: (u_b, v_b, z_b), each [H,W], for the planar
+    depth ``depth_a`` [H,W] of view a (K [3,3], viewmat [4,4] OpenCV world-to-camera, all in
+    ``depth_a``'s dtype). ``z_b`` is the depth in b; u/v divide by it clamped to 1e-6."""
+    H, W = depth_a.shape
+    uv = pixel_grid(H, W, depth_a.device).to(depth_a.dtype)
+    x = (uv[..., 0] - K_a[0, 2]) / K_a[0, 0] * depth_a
+    y = (uv[..., 1] - K_a[1, 2]) / K_a[1, 1] * depth_a
+    cam = torch.stack([x, y, depth_a], -1)                          # [H,W,3] camera a
+    rel = viewmat_b @ torch.linalg.inv(viewmat_a)                   # a -> b
+    q = cam @ rel[:3, :3].T + rel[:3, 3]
+    z = q[..., 2]
+    zs = torch.where(z > 1e-6, z, torch.full_like(z, 1e-6))
+    return K_b[0, 0] * q[..., 0] / zs + K_b[0, 2], K_b[1, 1] * q[..., 1] / zs + K_b[1, 2], z
+
+
 def warp_into(depth_a: torch.Tensor, K_a: torch.Tensor, viewmat_a: torch.Tensor, image_b: torch.Tensor,
               K_b: torch.Tensor, viewmat_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Image b seen through view a's depth.
@@ -60,17 +78,7 @@ def warp_into(depth_a: torch.Tensor, K_a: torch.Tensor, viewmat_a: torch.Tensor,
     image_b [Hb,Wb,C]. Returns (warped [H,W,C], valid [H,W] bool: in front of b, inside b's
     image, depth > 0). Differentiable in ``depth_a`` (bilinear sampling of b).
     """
-    H, W = depth_a.shape
-    uv = pixel_grid(H, W, depth_a.device)
-    x = (uv[..., 0] - K_a[0, 2]) / K_a[0, 0] * depth_a
-    y = (uv[..., 1] - K_a[1, 2]) / K_a[1, 1] * depth_a
-    cam = torch.stack([x, y, depth_a], -1)                          # [H,W,3] camera a
-    rel = viewmat_b @ torch.linalg.inv(viewmat_a)                   # a -> b
-    q = cam @ rel[:3, :3].T + rel[:3, 3]
-    z = q[..., 2]
-    zs = torch.where(z > 1e-6, z, torch.full_like(z, 1e-6))
-    ub = K_b[0, 0] * q[..., 0] / zs + K_b[0, 2]
-    vb = K_b[1, 1] * q[..., 1] / zs + K_b[1, 2]
+    ub, vb, z = project_into(depth_a, K_a, viewmat_a, K_b, viewmat_b)
     Hb, Wb = image_b.shape[:2]
     grid = torch.stack([ub / Wb * 2 - 1, vb / Hb * 2 - 1], -1)[None]
     warped = F.grid_sample(image_b.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border",
@@ -153,9 +161,9 @@ def orbit_view(vt: dict, pivot_depth: float, axis_angle: float, angle_rad: float
     """A view dict (``view_tensors`` keys; viewmat world->camera [1,4,4], OpenCV axes) whose
     camera is turned by ``angle_rad`` about the point ``pivot_depth`` ahead on its optical
     axis, about the axis ``cos(axis_angle) x_cam + sin(axis_angle) y_cam``, at ``scale`` x the
-    resolution (same field of view). The image is not copied."""
-    out = {k: v for k, v in vt.items() if k != "image"}
-    vm = vt["viewmat"][0].double()
+    resolution (same field of view, :func:`engine.scene.model.scaled_view`). The image is not copied."""
+    out = dict(vt)
+    vm = vt["viewmat"][0].detach().to("cpu", torch.float64)  # 4x4 arithmetic: on the CPU whatever the device
     R_wc, t_wc = vm[:3, :3], vm[:3, 3]
     R_cw = R_wc.T                              # columns: camera axes in world
     c = -R_cw @ t_wc                           # camera centre
@@ -166,15 +174,9 @@ def orbit_view(vt: dict, pivot_depth: float, axis_angle: float, angle_rad: float
     R_cw2, c2 = rot @ R_cw, p + rot @ (c - p)
     vm2 = torch.eye(4, dtype=torch.float64)
     vm2[:3, :3], vm2[:3, 3] = R_cw2.T, -R_cw2.T @ c2
-    out["viewmat"] = vm2.to(vt["viewmat"].dtype)[None]
-    out["campos"] = c2.to(vt["campos"].dtype)
-    if scale != 1.0:
-        w, h = max(1, int(round(vt["width"] * scale))), max(1, int(round(vt["height"] * scale)))
-        K = vt["K"].clone()
-        K[..., 0, :] *= w / vt["width"]
-        K[..., 1, :] *= h / vt["height"]
-        out.update(K=K, width=w, height=h)
-    return out
+    out["viewmat"] = vm2.to(vt["viewmat"].device, vt["viewmat"].dtype)[None]
+    out["campos"] = c2.to(vt["campos"].device, vt["campos"].dtype)
+    return scaled_view(out, scale)
 
 
 def crack_mask(alpha: torch.Tensor, kernel: int, covered: float = 0.5) -> torch.Tensor:
@@ -199,19 +201,11 @@ def seen_from(vt: dict, source: dict, depth: float) -> torch.Tensor:
     covered grows Gaussians there that no photometric loss holds (fog in front of the demo's
     wall at the eval camera, above the train cameras' frustum, in RGB-only runs of ~3000 steps)."""
     H, W = int(vt["height"]), int(vt["width"])
-    K = vt["K"][0].double()
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
-                            indexing="ij")
-    cam = torch.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1) * float(depth)
-    vm = vt["viewmat"][0].double()
-    world = (cam - vm[:3, 3]) @ vm[:3, :3]               # R^T (x - t), row vectors
-    sv = source["viewmat"][0].double()
-    xc = world @ sv[:3, :3].T + sv[:3, 3]
-    Ks = source["K"][0].double()
-    z = xc[..., 2]
-    u = Ks[0, 0] * xc[..., 0] / z.clamp_min(1e-9) + Ks[0, 2]
-    v = Ks[1, 1] * xc[..., 1] / z.clamp_min(1e-9) + Ks[1, 2]
-    return (z > 1e-9) & (u >= 0) & (u < int(source["width"])) & (v >= 0) & (v < int(source["height"]))
+    f64 = torch.float64
+    u, v, z = project_into(torch.full((H, W), float(depth), dtype=f64, device=vt["K"].device),
+                           vt["K"][0].to(f64), vt["viewmat"][0].to(f64),
+                           source["K"][0].to(f64), source["viewmat"][0].to(f64))
+    return (z > 1e-6) & (u >= 0) & (u < int(source["width"])) & (v >= 0) & (v < int(source["height"]))
 
 
 def cover_loss(alpha: torch.Tensor, kernel: int, eligible: torch.Tensor | None = None) -> torch.Tensor | None:
@@ -236,20 +230,17 @@ def _cover(ctx):
     hit = d[a > 0.5]
     if hit.numel() < 16:
         return None
+    pivot = float(hit.median())
     rng = np.random.default_rng([int(getattr(ctx.trainer, "seed", 0)), int(ctx.step), 11])
     angle = math.radians(float(cfg.cover_angle_deg)) * float(rng.uniform(0.5, 1.0))
-    vt = orbit_view(ctx.item, float(hit.median()), float(rng.uniform(0, 2 * math.pi)), angle,
-                    float(getattr(cfg, "cover_scale", 0.5)))
+    vt = orbit_view(ctx.item, pivot, float(rng.uniform(0, 2 * math.pi)), angle, float(getattr(cfg, "cover_scale", 0.5)))
     # only the Gaussians the step's own view draws may change for it: one outside every train
     # frustum is held by no photometric loss, and grown by this term alone it became fog
-    radii = ctx.meta.get("radii")
-    drawn = None
-    if radii is not None:
-        r = radii[0]
-        drawn = (r > 0) if r.dim() == 1 else (r > 0).any(-1)
+    radii = ctx.meta.get("radii")  # [C, N] on every backend (engine.raster)
+    drawn = None if radii is None else radii[0] > 0
     _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn)
     return cover_loss(alpha[0, ..., 0], int(getattr(cfg, "cover_kernel", 9)),
-                      seen_from(vt, ctx.item, float(hit.median())).to(alpha.device))
+                      seen_from(vt, ctx.item, pivot).to(alpha.device))
 
 
 def geometry_loss_terms(cfg, LossTerm) -> list:

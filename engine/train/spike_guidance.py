@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from ..scene.fine_deformation import SpikeFineEncoder, project_to_grid
+from ..scene.model import scaled_view
 from ..spike.features import SpikeWindowCache, bracket
 from ..spike.render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
 from .instants import InstantSampler
@@ -88,24 +89,6 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
 
 
 # ----------------------------------------------------------------------------- losses
-
-def scaled_view(item: dict, scale: float) -> dict:
-    """A trainer view dict (viewmat, K, width, height, ...) at ``scale`` x its resolution
-    (same field of view), without the image. Scales that do not divide the size evenly are
-    rounded to whole pixels."""
-    vt = {k: v for k, v in item.items() if k != "image"}
-    if scale == 1.0:
-        return vt
-    w, h = max(1, int(round(item["width"] * scale))), max(1, int(round(item["height"] * scale)))
-    sx, sy = w / item["width"], h / item["height"]
-    K = item["K"].clone()
-    K[..., 0, 0] *= sx
-    K[..., 0, 2] *= sx
-    K[..., 1, 1] *= sy
-    K[..., 1, 2] *= sy
-    vt.update(K=K, width=w, height=h)
-    return vt
-
 
 class SpikeGuidance:
     """Per-run state of the between-frame supervision (see module doc)."""
