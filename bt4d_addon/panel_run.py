@@ -28,6 +28,9 @@ def draw_reconstruction(layout, context) -> None:
     adv.prop(s, "motion")
     adv.prop(s, "freeze_static")
     adv.prop(s, "close_cracks")
+    fill = adv.row()
+    fill.enabled = bool(s.close_cracks)
+    fill.prop(s, "crack_fill")
     adv.prop(s, "early_stop")
     row = col.row(align=True)
     row.enabled = bool(s.capture_dir) and not running

@@ -29,6 +29,13 @@ MOTION_ITEMS = (  # engine.train.presets.TrainConfig.motion; the first is the en
     ("trajectory+hexplane", "Curves + Field",
      "Per-Gaussian curves with a HexPlane field as a residual on top (slowest)"),
 )
+CRACK_FILL_ITEMS = (  # engine.train.presets.TrainConfig.cover_grad; the first is the engine's default
+    ("all", "Grow and Move",
+     "Gaussians may grow, turn and move to cover cracks: best on most scenes (README)"),
+    ("opacities+means", "Move Only",
+     "Gaussians only move and gain opacity: no streaks on finely textured surfaces at high "
+     "resolution, but some holes may stay (README \"What the term may change\")"),
+)
 DEVICE_ITEMS = (
     ("auto", "Auto", "CUDA when torch sees a GPU, otherwise the CPU"),
     ("cpu", "CPU", "Train on the CPU (slow but always available)"),
@@ -80,6 +87,9 @@ class BT4D_SceneSettings(PropertyGroup):
         description="Keep what the cameras cover covered from viewpoints 10-20 degrees away (engine "
                     "TrainConfig.lambda_cover); turn off for scenes that really show empty space through "
                     "small gaps (wires, foliage)")
+    crack_fill: EnumProperty(
+        name="Fill Cracks By", items=CRACK_FILL_ITEMS, default=CRACK_FILL_ITEMS[0][0],
+        description="What the crack term may change (engine TrainConfig.cover_grad)")
     early_stop: BoolProperty(
         name="Stop Early", default=False,
         description="Stop training when the PSNR on a few held-out eval frames stops improving "

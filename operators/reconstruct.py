@@ -40,7 +40,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from bpy.types import Operator
 
 from ..bt4d_addon import worker
-from ..bt4d_addon.properties import MOTION_ITEMS
+from ..bt4d_addon.properties import CRACK_FILL_ITEMS, MOTION_ITEMS
 from . import load_result
 
 KIND = "reconstruct"
@@ -73,8 +73,8 @@ def resolve_run_dir(scene) -> str:
 
 def advanced_overrides(settings) -> dict:
     """The advanced settings of ``scene.bt4d`` as training overrides (only those that differ
-    from the engine's defaults: a switch turned on, "Close Cracks" turned off, a motion other
-    than the first item)."""
+    from the engine's defaults: a switch turned on, "Close Cracks" turned off, a motion or a
+    crack fill other than the first item)."""
     out = {}
     motion = getattr(settings, "motion", MOTION_ITEMS[0][0])
     if motion != MOTION_ITEMS[0][0]:
@@ -85,6 +85,10 @@ def advanced_overrides(settings) -> dict:
         out["early_stop"] = True
     if not getattr(settings, "close_cracks", True):
         out["lambda_cover"] = 0.0  # on in the engine by default
+    else:
+        fill = getattr(settings, "crack_fill", CRACK_FILL_ITEMS[0][0])
+        if fill != CRACK_FILL_ITEMS[0][0]:
+            out["cover_grad"] = str(fill)
     return out
 
 

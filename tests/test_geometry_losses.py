@@ -240,6 +240,52 @@ def test_cover_loss_sees_cracks_not_the_space_around_the_scene():
     assert not bool(m[:2].any()) and not bool(m[:, -3:].any()) and bool(m[10, 10])
 
 
+def test_crack_mask_separable_closing_matches_the_square_box():
+    """The two 1-D pools per pass give the k x k box's closing exactly (border empty)."""
+    import torch.nn.functional as F
+
+    from engine.train.geometry_losses import crack_mask
+
+    g = torch.Generator().manual_seed(3)
+    for k in (3, 9, 21):
+        a = (torch.rand(37, 53, generator=g) > 0.35).float() * torch.rand(37, 53, generator=g)
+        r = k // 2
+        m = F.pad((a > 0.5).float()[None, None], (r, r, r, r))
+        dil = F.max_pool2d(m, k, stride=1, padding=r)
+        ref = (-F.max_pool2d(-dil, k, stride=1, padding=r))[0, 0, r:r + 37, r:r + 53] > 0.5
+        assert torch.equal(crack_mask(a, k), ref), k
+
+
+def test_cover_kernel_follows_the_render_resolution(tmp_path, monkeypatch):
+    """The closing box is a share of the virtual render's shorter side: the 9 px measured on
+    the test scenes, 45 px at a 1080x720 capture's 540x360 render; and the term passes the
+    render's own size to it."""
+    from engine.io.capture import load_capture
+    from engine.train import geometry_losses as gl
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
+    from tools.synthetic import write_synthetic_capture
+
+    frac = get_preset("fast").cover_kernel_frac
+    assert gl.cover_kernel_px(frac, 60, 80) == 9 and gl.cover_kernel_px(frac, 72, 96) == 9  # the test scenes
+    assert gl.cover_kernel_px(frac, 360, 540) == 45  # a 1080x720 capture
+    assert gl.cover_kernel_px(frac, 120, 160) == 15
+    assert gl.cover_kernel_px(frac, 10, 12) == 3  # never below 3 px
+    seen = []
+    real = gl.cover_loss
+    monkeypatch.setattr(gl, "cover_loss", lambda alpha, kernel, eligible=None: (
+        seen.append((tuple(alpha.shape), kernel)), real(alpha, kernel, eligible))[1])
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=96, height=72, n_rgb=2, eval_fps=30.0))
+    for frac, want in ((0.125, 5), (0.3, 11)):  # cover_scale 0.5: 48x36 renders
+        seen.clear()
+        cfg = get_preset("fast", {"iterations": 4, "cover_every": 1, "cover_kernel_frac": frac})
+        tr = Trainer(cap, cfg, device="cpu", seed=0, rgb_only=True)
+        tr.init_model()
+        for s in range(2):
+            tr.step(s)
+        assert seen and all(sh == (36, 48) and k == want for sh, k in seen), seen
+
+
 def test_cover_term_raises_alpha_at_a_new_view(tmp_path):
     """A short run with the cover term leaves fewer cracks at a view 20 deg off than without."""
     import math
@@ -307,3 +353,75 @@ def test_render_grad_rows_limits_the_gradient_to_those_gaussians(tmp_path):
     alpha.sum().backward()
     grad = g.opacity_logits.grad.reshape(g.num_gaussians)
     assert bool((grad[~rows] == 0).all()) and bool((grad[rows] != 0).any())
+
+
+def test_render_grad_attrs_limits_the_gradient_to_those_attributes(tmp_path):
+    """``grad_attrs``: a loss on the render trains only the named attributes (the cover term's
+    ``cover_grad``, e.g. positions and opacities, not the shapes); "size": the scales' common
+    factor only."""
+    from engine.io.capture import load_capture
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
+    from tools.synthetic import write_synthetic_capture
+
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0))
+    tr = Trainer(cap, get_preset("fast", {"iterations": 2}), device="cpu", seed=0, rgb_only=True)
+    tr.init_model()
+    g = tr.model.gaussians
+    for attrs, trained in ((("opacities", "means"), {"opacity_logits", "means"}),
+                           (None, {"opacity_logits", "means", "log_scales", "quats"})):
+        for p in (g.means, g.quats, g.log_scales, g.opacity_logits):
+            p.grad = None
+        _, alpha, _, _ = tr.model.render(tr.items[0], render_depth=False, grad_attrs=attrs)
+        alpha.sum().backward()
+        for name in ("means", "quats", "log_scales", "opacity_logits"):
+            grad = getattr(g, name).grad
+            moved = grad is not None and bool((grad != 0).any())
+            assert moved == (name in trained), (attrs, name)
+    # "size": one gradient shared by the three log-scales of a Gaussian, nothing else moves
+    for p in (g.means, g.quats, g.log_scales, g.opacity_logits):
+        p.grad = None
+    _, alpha, _, _ = tr.model.render(tr.items[0], render_depth=False, grad_attrs=("size",))
+    alpha.sum().backward()
+    gs = g.log_scales.grad
+    assert g.means.grad is None or not bool((g.means.grad != 0).any())
+    assert bool((gs != 0).any()) and torch.allclose(gs, gs[:, :1].expand_as(gs), atol=1e-7)
+
+
+def test_cover_grad_reaches_the_term_render(tmp_path, monkeypatch):
+    """The cover term renders with ``grad_attrs`` from ``cover_grad``: all attributes by default,
+    only positions and opacities with ``opacities+means`` (README "What the term may change")."""
+    from engine.io.capture import load_capture
+    from engine.scene.model import Model4D
+    from engine.train.presets import get_preset
+    from engine.train.trainer import Trainer
+    from tools.synthetic import write_synthetic_capture
+
+    seen = []
+    real = Model4D.render
+
+    def spy(self, vt, t=None, **kw):
+        if kw.get("grad_rows") is not None:  # only the cover term passes grad_rows
+            seen.append(kw.get("grad_attrs"))
+        return real(self, vt, t, **kw)
+
+    monkeypatch.setattr(Model4D, "render", spy)
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
+    for over, want in (({}, None), ({"cover_grad": "opacities+means"}, ("opacities", "means"))):
+        seen.clear()
+        tr = Trainer(cap, get_preset("fast", {"iterations": 4, "cover_every": 1, **over}), device="cpu", seed=0,
+                     rgb_only=True)
+        tr.init_model()
+        tr.step(0)
+        assert seen and all(a == want for a in seen), (over, seen)
+
+
+def test_cover_grad_names_are_checked():
+    import pytest
+
+    from engine.train.geometry_losses import cover_grad_attrs
+
+    assert cover_grad_attrs("all") is None
+    assert cover_grad_attrs("opacities+means") == ("opacities", "means")
+    with pytest.raises(ValueError, match="opacity"):
+        cover_grad_attrs("opacity+means")

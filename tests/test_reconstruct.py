@@ -258,7 +258,16 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s.close_cracks = False
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
     assert calls[-1]["overrides"] == {"iterations": 5, "lambda_cover": 0.0}
+    s.crack_fill = "opacities+means"  # off wins: no term, nothing else passed
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"iterations": 5, "lambda_cover": 0.0}
     s.close_cracks = True
+    # "Fill Cracks By": the engine's default (first item) passes nothing; "Move Only" is passed
+    from engine.train.geometry_losses import cover_grad_attrs
+    assert TrainConfig().cover_grad == "all" and cover_grad_attrs(s.crack_fill) == ("opacities", "means")
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert calls[-1]["overrides"] == {"iterations": 5, "cover_grad": "opacities+means"}
+    s.crack_fill = "all"
     s.early_stop = True
     r = bpy.context.scene.bt4d_run
     assert r.status == "FINISHED" and "stopped early at step 3/5" in r.message

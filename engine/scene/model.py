@@ -172,15 +172,25 @@ class Model4D(nn.Module):
                 "opacities": opacities, "colors": colors}
 
     def render(self, vt: dict, t: float | None = None, *, background=None, fine=None, backend="auto",
-               render_depth: bool = True, motion_only: bool = False, grad_rows: torch.Tensor | None = None):
+               render_depth: bool = True, motion_only: bool = False, grad_rows: torch.Tensor | None = None,
+               grad_attrs: tuple | None = None):
         """Render one view (``view_tensors`` dict) at time ``t`` (default: the view's time).
 
         ``grad_rows`` (bool [N]): only these Gaussians' attributes carry a gradient from this
-        render; the others are drawn but enter detached.
+        render; the others are drawn but enter detached. ``grad_attrs``: only these of
+        :meth:`attributes`' keys (means, quats, scales, opacities, colors) carry one; "size"
+        (without "scales"): the scales' common factor does, their ratios do not.
         Returns (rgb [1,H,W,3], alpha [1,H,W,1], meta, attributes).
         """
         t = vt["time"] if t is None else float(t)
         attrs = self.attributes(t, campos=vt["campos"], fine=fine, motion_only=motion_only)
+        if grad_attrs is not None:
+            kept = {k: v if k in grad_attrs else v.detach() for k, v in attrs.items()}
+            if "size" in grad_attrs and "scales" not in grad_attrs:
+                # the shape detached, its overall size trained: one factor on all three axes
+                m = attrs["scales"].log().mean(-1, keepdim=True)
+                kept["scales"] = kept["scales"] * torch.exp(m - m.detach())
+            attrs = kept
         if grad_rows is not None:
             keep = grad_rows.to(attrs["means"].device)
             attrs = {k: torch.where(keep.reshape(-1, *([1] * (v.dim() - 1))), v, v.detach()) for k, v in attrs.items()}
