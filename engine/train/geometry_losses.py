@@ -37,6 +37,7 @@ Functions take and return tensors with documented shapes; the trainer calls
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -237,7 +238,7 @@ def cover_loss(alpha: torch.Tensor, kernel: int, eligible: torch.Tensor | None =
     return ((1.0 - alpha) * inside).sum() / alpha.numel()
 
 
-def _cover(ctx):
+def _cover(ctx, grad_attrs: tuple | None = None):
     cfg = ctx.trainer.cfg
     every = max(1, int(getattr(cfg, "cover_every", 1)))
     depth = ctx.meta.get("depths")
@@ -255,9 +256,8 @@ def _cover(ctx):
     # frustum is held by no photometric loss, and grown by this term alone it became fog
     radii = ctx.meta.get("radii")  # [C, N] on every backend (engine.raster)
     drawn = None if radii is None else radii[0] > 0
-    attrs = cover_grad_attrs(getattr(cfg, "cover_grad", "all"))
     _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn,
-                                              grad_attrs=attrs)
+                                              grad_attrs=grad_attrs)
     kernel = cover_kernel_px(float(getattr(cfg, "cover_kernel_frac", 0.125)), int(vt["height"]), int(vt["width"]))
     return cover_loss(alpha[0, ..., 0], kernel,
                       seen_from(vt, ctx.item, pivot).to(alpha.device))
@@ -289,8 +289,9 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
     if getattr(cfg, "lambda_depth_smooth", 0.0) > 0:
         terms.append(LossTerm("depth_smooth", cfg.lambda_depth_smooth, _depth_smooth))
     if getattr(cfg, "lambda_cover", 0.0) > 0:
-        cover_grad_attrs(getattr(cfg, "cover_grad", "all"))  # a wrong name fails here, not silently
-        terms.append(LossTerm("cover", cfg.lambda_cover, _cover))
+        # parsed once per run; a wrong name fails here, before the first step
+        attrs = cover_grad_attrs(getattr(cfg, "cover_grad", "all"))
+        terms.append(LossTerm("cover", cfg.lambda_cover, functools.partial(_cover, grad_attrs=attrs)))
     return terms
 
 
