@@ -233,6 +233,23 @@ def test_trainer_steps_with_the_flow_term(demo_capture):
     assert "spike_flow" not in {t.name for t in off.loss_terms}
 
 
+@pytest.mark.slow
+def test_run_records_the_interval_fits_and_junction_moves(demo_capture, tmp_path):
+    """A real run on the demo capture: every interval fit (with ``spike_flow_junctions``, on by
+    default) is recorded in run.json's ``spike_flow_fits`` with what it moved."""
+    import json
+
+    from engine.train import train
+
+    assert get_preset("fast").spike_flow_junctions == "all"
+    summary = train(demo_capture, tmp_path / "run", preset="fast", overrides={**_TINY, "iterations": 12},
+                    resume=False)
+    assert summary["status"] == "finished"
+    fits = json.loads((tmp_path / "run" / "run.json").read_text())["spike_flow_fits"]
+    assert fits and all("junctions_ahead" in f and "junctions_back" in f for f in fits)
+    assert all(f["junctions_ahead"]["moved"] <= f["junctions_ahead"]["surface"] for f in fits)
+
+
 def test_fit_inner_residuals_recovers_a_bump():
     """Curves at rest at both ends; targets = a known bump a(u) D0 + b(u) D1: the least-squares
     change is D (up to the small ridge), and unobserved curves (weight 0) do not move."""
@@ -309,3 +326,57 @@ def test_budget_probe_neither_fits_nor_takes_the_runs_fits(demo_capture, monkeyp
     assert calls == [] and tr.spike_flow.fitted == {0: {"fitted": 1}}
     term_values(tr, "spike_flow", steps=8)  # the real run still fits what the probe saw
     assert calls
+
+
+def test_flow_junctions_take_the_other_end_from_the_flow():
+    """spike_flow_junctions: the visible Gaussians at one end of an interval get their place at
+    the other end from the spike flow (here 4 px in x over the interval: the flow to the cached
+    instant nearest the other end, extended to it, lifted at the Gaussian's depth), held beyond
+    it; ``born_only``: only those born at that end; others keep their curves."""
+    from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE
+    from engine.train.births import ensure_temporal_opacity
+
+    sup, _ = _fake_supervision(steps=3)
+    sup.cfg = sup.cfg.replace(spike_flow_min_px=0.5)
+    sup.estimate = lambda t_ref, t: (np.tile(np.array([4.0 * (t - t_ref) / 0.1, 0.0], np.float32), (60, 80, 1)),
+                                     np.ones((60, 80), bool))
+    m = _traj_model(n=12)
+    g = m.gaussians
+    ensure_temporal_opacity(g)
+    with torch.no_grad():
+        getattr(g, TIME_CENTER)[:4] = 0.1  # born at 0.1
+        getattr(g, TIME_CENTER)[4:8] = 0.2  # born at 0.2
+        getattr(g, TIME_LOG_SCALE)[:8] = float(np.log(0.05))
+    before = getattr(g, TRAJ_MEANS).detach().clone()
+    idx = torch.arange(12)
+    uv, _ = project(g.means.detach(), VIEWMAT, K)
+    assert sup.flow_junctions(m, 1, 0.1, 0.2, idx, uv, born_only=True)["moved"] == 4
+    after = getattr(g, TRAJ_MEANS).detach()
+    for j in (2, 3):  # the junction at 0.2 and the one after it hold the place at 0.2
+        uv_j, _ = project(g.means.detach()[:4] + after[:4, 3 * j], VIEWMAT, K)
+        assert torch.allclose(uv_j - uv[:4], torch.tensor([4.0, 0.0]).expand(4, 2), atol=1e-3)
+    assert torch.equal(after[:4, :6], before[:4, :6])  # up to 0.1: where it was born
+    assert torch.equal(after[4:], before[4:])
+    # back: the ones born at 0.2 get their place at 0.1 (and before) from the flow 0.2 -> 0.1
+    assert sup.flow_junctions(m, 1, 0.2, 0.1, idx, uv, born_only=True)["moved"] == 4
+    after = getattr(g, TRAJ_MEANS).detach()
+    for j in (0, 1):
+        uv_j, _ = project(g.means.detach()[4:8] + after[4:8, 3 * j], VIEWMAT, K)
+        assert torch.allclose(uv_j - uv[4:8], torch.tensor([-4.0, 0.0]).expand(4, 2), atol=1e-3)
+    assert torch.equal(after[8:], before[8:])
+    # every visible Gaussian at the reference instant, born or not
+    assert sup.flow_junctions(m, 1, 0.1, 0.2, idx, uv)["moved"] == 12
+    uv_j, _ = project(g.means.detach()[8:] + getattr(g, TRAJ_MEANS).detach()[8:, 6], VIEWMAT, K)
+    assert torch.allclose(uv_j - uv[8:], torch.tensor([4.0, 0.0]).expand(4, 2), atol=1e-3)
+    # a flow under spike_flow_min_px moves nothing
+    sup.cfg = sup.cfg.replace(spike_flow_min_px=10.0)
+    assert sup.flow_junctions(m, 1, 0.1, 0.2, idx, uv)["moved"] == 0
+
+
+def test_unknown_junction_mode_is_refused():
+    cfg = get_preset("fast", {"spike_flow_junctions": "some"})
+    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
+        viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
+    tr = types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu"))
+    with pytest.raises(ValueError, match="spike_flow_junctions"):
+        SpikeFlowSupervision(tr, types.SimpleNamespace(stream=stream, sensor=None))

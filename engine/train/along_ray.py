@@ -42,7 +42,7 @@ from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
 from .losses import LossTerm
 from .spike_guidance import spike_view_guidance
 
-__all__ = ["along_ray_factory", "along_ray_loss", "along_ray_target", "motion_positions", "ray_depth"]
+__all__ = ["along_ray_factory", "along_ray_loss", "along_ray_target", "motion_frames", "motion_positions", "ray_depth"]
 
 CURVES = ("hermite", "linear")
 
@@ -94,6 +94,13 @@ def motion_positions(model: Model4D, t: float, idx: torch.Tensor, static: torch.
     attributes detached (only the motion -- trajectories and / or deformation field -- keeps
     a gradient), as :meth:`Model4D.attributes` computes them (static rows do not move).
     ``static``: bool [N] of the static rows (default: the model's, recomputed)."""
+    return motion_frames(model, t, idx, static)[0]
+
+
+def motion_frames(model: Model4D, t: float, idx: torch.Tensor, static: torch.Tensor | None | str = "model"
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(positions [M, 3], quaternions [M, 4], unnormalised) of the Gaussians ``idx`` at ``t``:
+    :func:`motion_positions` with the rotations too (engine.train.between_rigidity)."""
     g = model.gaussians
     means, quats = g.means.detach()[idx], g.quats.detach()[idx]
     if isinstance(static, str):
@@ -110,8 +117,8 @@ def motion_positions(model: Model4D, t: float, idx: torch.Tensor, static: torch.
     if model.use_deformation and model.deformation is not None and (moving is None or bool(moving.any())):
         d = model.deformation(means, quats, g.log_scales.detach()[idx], g.opacity_logits.detach()[idx], t,
                               mask=moving)
-        means = d["means"]
-    return means
+        means, quats = d["means"], d["quats"]
+    return means, quats
 
 
 # ------------------------------------------------------------------------------ trainer term

@@ -251,6 +251,15 @@ class TrainConfig:
     along_ray_curve: str = "hermite"  # hermite (Catmull-Rom tangents) | linear
     along_ray_beta: float = 0.01  # smooth-L1 knee, x extent
     along_ray_max_gaussians: int = 4096  # random subset of the touched Gaussians per step (0: all)
+    # local rigidity between RGB instants (issue 11, engine.train.between_rigidity): at each between-frame
+    # render's instant the Gaussians that move over its RGB interval keep Luiten et al.'s rigidity, rotation
+    # similarity and isometry over rigidity_k neighbours with respect to both ends of the interval. Off:
+    # 1000 fast steps, eval between RGB frames, fast +0.04 / +0.13 dB (moving pixels +0.01 / -0.01),
+    # between -0.01, ~1.6x the run's time (README "The fast scene's ghost")
+    rigidity_between_weight: float = 0.0  # 0: off (the term is not built)
+    rigidity_between_min_move: float = 0.005  # moving: displaced over the interval by more than this x extent
+    rigidity_between_every: int = 100  # steps an interval's neighbour lists are reused (same Gaussian set)
+    rigidity_between_max_gaussians: int = 8192  # random subset of the moving Gaussians (0: all)
     # spike-view optical flow (issue 11, engine.train.spike_flow): the visible Gaussians' projected
     # displacement at the spike camera from an RGB instant to a between instant follows the flow
     # between grey images reconstructed from the spikes (trajectories only)
@@ -265,6 +274,11 @@ class TrainConfig:
     spike_flow_max_gaussians: int = 4096  # random subset of the surface Gaussians per step (0: all)
     spike_flow_fit: bool = True  # once per interval, least-squares fit of the inner control points to the flow
     spike_flow_min_px: float = 0.5  # the fit leaves curves whose median flow is below this (spike px) where they are
+    # the curves' place at the next RGB instant from the spike flow (spike_flow.flow_junctions), at each
+    # interval's fit: "all" the surface Gaussians at the left end; "born" only those born at either end (each
+    # to the other end); "none". all: 1000 fast steps, seeds 0 / 1, eval between RGB frames: fast +0.19 / +0.20,
+    # between -0.02 / +0.02, demo -0.00 / +0.13 dB (README "The fast scene's ghost")
+    spike_flow_junctions: str = "all"
     # quiet curves (issue 11, engine.train.quiet_curves): segment k's inner control points stay at zero
     # (the Catmull-Rom curve) for Gaussians that project at both of its RGB instants where the spike view
     # saw no change in interval k (dilated by quiet_curves_dilate change-map blocks). On: 1000 fast steps,

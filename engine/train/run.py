@@ -246,6 +246,9 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         update_run_json(run_dir, trajectory_carry=trainer.carry_info)
     if getattr(trainer, "birth_info", None):  # Gaussians born at admitted instants (engine.train.births)
         update_run_json(run_dir, births=trainer.birth_info)
+    fits = getattr(getattr(trainer, "spike_flow", None), "fitted", None)
+    if fits:  # the spike-view flow's interval fits (engine.train.spike_flow.fit_interval)
+        update_run_json(run_dir, spike_flow_fits=[fits[k] for k in sorted(fits) if fits[k]])
     summary = {
         "status": status, "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
         "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),

@@ -23,6 +23,11 @@ control points (the junctions belong to the RGB frames), so the term bends the i
 motion and leaves what both cameras saw alone. ``d pi / d x`` is perpendicular to the ray:
 the along-ray component stays with the curves' smoothness (``traj_inner_weight``).
 
+Once per RGB interval (``fit_interval``, ``spike_flow_fit``) the flow also bends the visible
+curves' inner control points by least squares and, with ``spike_flow_junctions`` (on: ``all``),
+puts their place at the interval's right end where the flow says (``flow_junctions``: the train
+cameras' 30 FPS carry misses fast jumps; README "The fast scene's ghost").
+
 Flows are computed once per (reference instant, between instant) pair: the between instant
 is rounded to ``spike_flow_steps`` points per RGB interval and the reference is the nearer
 admitted RGB instant, so a run holds at most ``2 x steps x intervals`` tiny flow maps (the
@@ -38,18 +43,20 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..scene import trajectory as traj
-from ..scene.model import TRAJ_MEANS, Model4D
+from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
 from .baselines import spike_to_gray
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
 from .spike_guidance import spike_view_guidance
+from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
-__all__ = ["gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map", "project", "lift",
-           "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions", "subset_positions",
-           "SpikeFlowSupervision", "spike_flow_factory"]
+JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
+
+__all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map",
+           "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions",
+           "subset_positions", "SpikeFlowSupervision", "spike_flow_factory"]
 
 
 # ------------------------------------------------------------------------------ functional
@@ -103,63 +110,6 @@ def flow_pair(gray_a: np.ndarray, gray_b: np.ndarray, *, upsample: int = 2, tol_
         fw = dense_flow(a8, b8, upsample)
         bw = dense_flow(b8, a8, upsample)
     return fw, forward_backward_valid(fw, bw, tol_px)
-
-
-def sample_map(img: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Values [M, C] of ``img`` [h, w, C] at continuous pixel coordinates ``uv`` [M, 2]
-    (corner of the image at (0, 0), pixel (i, j)'s centre at (j + 0.5, i + 0.5): the
-    convention of :func:`engine.cameras.project_points`); borders clamp."""
-    h, w = img.shape[:2]
-    grid = torch.stack([uv[:, 0] / w * 2.0 - 1.0, uv[:, 1] / h * 2.0 - 1.0], -1).reshape(1, 1, -1, 2)
-    src = img.permute(2, 0, 1)[None].to(grid.dtype)
-    out = F.grid_sample(src, grid, mode=mode, padding_mode="border", align_corners=False)
-    return out[0, :, 0].T
-
-
-def project(x: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pinhole projection of world points ``x`` [N, 3] -> (uv [N, 2], z [N]); ``viewmat``
-    [4, 4] world-to-camera, ``K`` [3, 3] (as :func:`engine.cameras.project_points`)."""
-    cam = x @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
-    zs = z.clamp_min(1e-6)
-    uv = torch.stack([K[0, 0] * cam[:, 0] / zs + K[0, 2], K[1, 1] * cam[:, 1] / zs + K[1, 2]], -1)
-    return uv, z
-
-
-def projected_flow_loss(uv_t: torch.Tensor, target: torch.Tensor, beta: float = 1.0) -> torch.Tensor:
-    """Mean smooth-L1 (knee ``beta`` px) of the 2D error ``|uv_t - target|`` [M] in pixels
-    (``target`` detached)."""
-    err = torch.linalg.vector_norm(uv_t - target.detach(), dim=-1)
-    return F.smooth_l1_loss(err, torch.zeros_like(err), beta=float(beta))
-
-
-def segment_basis(u: torch.Tensor) -> torch.Tensor:
-    """[J, 2]: the Bezier weights ``3 (1-u)^2 u`` and ``3 (1-u) u^2`` of a segment's two inner
-    control points at local parameters ``u`` [J] (a curve moves by ``a D0 + b D1`` when its
-    residuals move by ``D0, D1``; engine.scene.trajectory)."""
-    v = 1.0 - u
-    return torch.stack([3.0 * v * v * u, 3.0 * v * u * u], -1)
-
-
-def fit_inner_residuals(current: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor, u: torch.Tensor,
-                        ridge: float = 1e-3) -> torch.Tensor:
-    """Least-squares change ``dD`` [M, 2, 3] of one segment's inner residuals so that the
-    curves pass through ``targets``: ``current[j] + a(u_j) dD0 + b(u_j) dD1 ~ targets[j]``
-    weighted by ``weights`` [J, M] (0 = no observation). ``current``, ``targets`` [J, M, 3];
-    ``ridge`` (x the summed weight) keeps poorly observed curves near where they are."""
-    B = segment_basis(u.to(current))  # [J, 2]
-    w = weights.to(current)
-    AtA = torch.einsum("jm,ja,jb->mab", w, B, B)
-    AtA = AtA + ridge * w.sum(0).clamp_min(1e-6)[:, None, None] * torch.eye(2, dtype=current.dtype,
-                                                                             device=current.device)
-    Atr = torch.einsum("jm,ja,jmc->mac", w, B, targets - current)
-    return torch.linalg.solve(AtA, Atr)
-
-
-def lift(uv: torch.Tensor, z: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """World points [N, 3] at pixels ``uv`` [N, 2] and camera depth ``z`` [N] (inverse of :func:`project`)."""
-    cam = torch.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], -1)
-    return (cam - viewmat[:3, 3]) @ viewmat[:3, :3]
 
 
 class _InnerAt(torch.autograd.Function):
@@ -262,6 +212,9 @@ class SpikeFlowSupervision:
         self.trainer = trainer
         self.guidance = guidance
         self.cfg = trainer.cfg
+        if self.cfg.spike_flow_junctions not in JUNCTION_MODES:
+            raise ValueError(f"unknown spike_flow_junctions {self.cfg.spike_flow_junctions!r}; "
+                             f"choose one of {', '.join(JUNCTION_MODES)}")
         stream = guidance.stream
         self.stream = stream
         view = stream.view(0.0)
@@ -378,8 +331,14 @@ class SpikeFlowSupervision:
         n = max(1, int(self.cfg.spike_flow_steps))
         us = torch.arange(1, n + 1, dtype=torch.float32) / (n + 1)
         idx, uv_ref = self.surface(model, a)
+        moved = {}
+        mode = self.cfg.spike_flow_junctions
+        if mode != "none":  # before the inner fit, which starts from the moved curves
+            moved["junctions_ahead"] = self.flow_junctions(model, k, a, b, idx, uv_ref, born_only=mode == "born")
+            # those born at the right end (after the carry) take their place at the left one
+            moved["junctions_back"] = self.flow_junctions(model, k, b, a, *self.surface(model, b), born_only=True)
         if idx.numel() == 0:
-            return {"interval": k, "fitted": 0}
+            return {"interval": k, "fitted": 0, **moved}
         g = model.gaussians
         params = getattr(g, TRAJ_MEANS)
         knots = model.trajectory["knots"]
@@ -422,7 +381,61 @@ class SpikeFlowSupervision:
         params.data[:, 3 * seg + 1] += full[:, 0]
         params.data[:, 3 * seg + 2] += full[:, 1]
         return {"interval": k, "fitted": int(enough.sum()), "still": int((enough & still).sum()), "hidden": hidden,
+                **moved,
                 "mean_change_mm": float(dD[enough].norm(dim=-1).mean() * 1000) if bool(enough.any()) else 0.0}
+
+    @torch.no_grad()
+    def flow_junctions(self, model: Model4D, k: int, ref: float, other: float, idx: torch.Tensor,
+                       uv_ref: torch.Tensor, born_only: bool = False) -> dict:
+        """Put the curves of the Gaussians that are the visible surface at ``ref`` (one end of
+        interval ``k``; ``idx``, pixels ``uv_ref``) where the spike view's flow says they are at
+        the interval's other end ``other`` (``spike_flow_junctions``; ``born_only``: only those
+        born at ``ref``, engine.train.births): the flow from ``ref`` to the cached between
+        instant nearest ``other`` (``u = n / (n + 1)``), lifted at the Gaussian's camera depth at
+        ``ref`` and extended linearly to ``other``; the junctions beyond ``other`` hold it.
+
+        Why: the train cameras' carry (``traj_carry=flow``) finds the next RGB instant by a
+        30 FPS optical flow that misses the fast scene's jumps (the ball ~55 px per frame;
+        README "Births that move"), so curves and births stay behind and the object between two
+        RGB instants is a cross-fade of two copies (the ghost). The spike view sees the whole
+        motion at 20 kHz. Depth is the Gaussian's at ``ref``: the curve's own depth at ``other``
+        (the stereo-lifted carry) measured worse (README). Returns counts for run.json."""
+        info = {"surface": int(idx.numel()), "moved": 0}
+        if idx.numel() == 0:
+            return info
+        g = model.gaussians
+        if born_only:  # born at ``ref``: the temporal centre (trained, so it drifts) nearer ``ref`` than ``other``
+            if TIME_CENTER not in g.extra_lrs:
+                return info
+            near = (getattr(g, TIME_CENTER).detach()[idx, 0] - ref).abs() < 0.5 * abs(other - ref)
+            keep = born_mask(g)[idx] & near
+            idx, uv_ref = idx[keep], uv_ref[keep]
+            info["born"] = int(idx.numel())
+            if idx.numel() == 0:
+                return info
+        n = max(1, int(self.cfg.spike_flow_steps))
+        frac = n / (n + 1)
+        flow, valid = self.flow(ref, ref + (other - ref) * frac)
+        f = sample_map(flow, uv_ref)
+        ok = (sample_map(valid, uv_ref, "nearest")[:, 0] > 0.5) & (f.norm(dim=-1) >= float(self.cfg.spike_flow_min_px))
+        if not bool(ok.any()):
+            return info
+        idx, uv, f = idx[ok], uv_ref[ok], f[ok]
+        x = subset_positions(model, ref, idx)
+        _, z = project(x, self.viewmat, self.K)
+        d = (lift(uv + f, z, self.viewmat, self.K) - x) / frac
+        knots = model.trajectory["knots"]
+        seg, _ = traj.segment_of(knots, 0.5 * (self.times[k] + self.times[k + 1]))
+        tm = getattr(g, TRAJ_MEANS).data
+        if other > ref:  # ahead: junction seg + 1 and every later one
+            j_ref, moved = seg, range(seg + 1, len(knots))
+        else:  # back: junction seg and every earlier one
+            j_ref, moved = seg + 1, range(0, seg + 1)
+        new = tm[idx, 3 * j_ref] + d.to(tm)
+        for j in moved:
+            tm[idx, 3 * j] = new
+        info["moved"] = int(idx.numel())
+        return info
 
     def after_step(self, tr, step, item, meta) -> None:
         """Post-step hook: the interval fits asked for during this step."""

@@ -47,6 +47,7 @@ from ..scene.gaussians import GaussianModel
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
 from ..scene.trajectory import extrapolate_junctions
 from .along_ray import along_ray_factory
+from .between_rigidity import between_rigidity_factory
 from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
@@ -62,8 +63,8 @@ from .spike_guidance import guidance_factory, spike_stream_info
 # guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the along-ray prior,
 # the spike-view flow term and the quiet-curves hook (after the flow fit; issue 11) ride on its between instants.
 LossFactory = Callable[["Trainer"], "list[LossTerm] | None"]
-LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, along_ray_factory, spike_flow_factory,
-                                           quiet_curves_factory)
+LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, along_ray_factory, between_rigidity_factory,
+                                           spike_flow_factory, quiet_curves_factory)
 
 
 # ---------------------------------------------------------------------------------- helpers
