@@ -24,8 +24,8 @@ checkpointed with the run so that cancel + resume equals an uninterrupted run):
 * ``freeze_static``: CPOStream freezing (:class:`engine.train.freezing.TrainFreezer`):
   Gaussians that stay still for K motion checks skip the deformation field;
 * ``early_stop``: stop (status ``finished``, ``stopped_early`` in the summary and run.json)
-  when the PSNR on a few held-out eval frames (train frames when the capture has none)
-  stops improving (:class:`engine.train.early_stop.EarlyStop`);
+  when the PSNR on train frames held back from training (never the eval frames) stops
+  improving (:class:`engine.train.early_stop.EarlyStop`);
 * ``cull_frustum``: prune Gaussians outside every train frustum after the first step, at
   the start of the deformation stage and after each densification
   (:class:`engine.train.culling.FrustumCuller`).
