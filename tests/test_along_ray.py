@@ -7,6 +7,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from train_util import GUIDED_TINY as _TINY
 from train_util import term_values, trajectory_model
 
 from engine.scene.deformation import DeformationField
@@ -135,11 +136,6 @@ def test_bracket_uses_admitted_rgb_instants_only():
     assert p.bracket(0.05, 0.3) == {"a": 0.0, "b": 0.1, "next": 0.2}
     assert p.bracket(0.35, 0.3) is None
 
-
-_TINY = {"iterations": 8, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
-         "densify_from": 2.0, "densify_until": 2.0, "block_interp": "linear", "between_colocated_p": 1.0,
-         "time_curriculum": 0.0, "spike_skip_static": False, "fine_d_model": 16, "fine_channels": 8,
-         "fine_k_sub": 4}
 
 
 @pytest.mark.slow

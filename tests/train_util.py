@@ -47,3 +47,10 @@ def frame_items(cap) -> list[dict]:
         vt["index"], vt["camera"] = i, f.camera
         items.append(vt)
     return items
+
+
+# A guided run in a few steps on the demo capture (the spike-view terms' trainer tests)
+GUIDED_TINY = {"iterations": 8, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
+               "densify_from": 2.0, "densify_until": 2.0, "block_interp": "linear", "between_colocated_p": 1.0,
+               "time_curriculum": 0.0, "spike_skip_static": False, "fine_d_model": 16, "fine_channels": 8,
+               "fine_k_sub": 4}

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from ..scene import trajectory as traj
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
 from .losses import LossTerm
-from .spike_guidance import spike_view_guidance
+from .spike_guidance import admitted_time, spike_view_guidance
 
 __all__ = ["along_ray_factory", "along_ray_loss", "along_ray_target", "motion_frames", "motion_positions", "ray_depth"]
 
@@ -165,8 +165,7 @@ class AlongRayPrior:
         b, model = hit
         tr = ctx.trainer
         t = float(b["instant"].time)
-        window = getattr(tr, "time_window", None)
-        admitted = window(ctx.step) if callable(window) else self.times[-1]
+        admitted = admitted_time(ctx, self.times[-1])
         times = self.bracket(t, admitted)
         if times is None:
             return None

@@ -31,6 +31,7 @@ import torch
 from ..scene.rigidity import knn_neighbours, rigidity_losses
 from .along_ray import motion_frames
 from .losses import LossTerm
+from .spike_guidance import admitted_time
 
 __all__ = ["BetweenRigidity", "between_rigidity_factory"]
 
@@ -90,8 +91,7 @@ class BetweenRigidity:
             return None
         tr = ctx.trainer
         t = float(b["instant"].time)
-        window = getattr(tr, "time_window", None)
-        admitted = window(ctx.step) if callable(window) else self.times[-1]
+        admitted = admitted_time(ctx, self.times[-1])
         k = self.interval(t, admitted)
         if k is None:
             return None

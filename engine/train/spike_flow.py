@@ -49,7 +49,7 @@ from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
 from .baselines import spike_to_gray
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
-from .spike_guidance import spike_view_guidance
+from .spike_guidance import admitted_time, spike_view_guidance
 from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
@@ -449,8 +449,7 @@ class SpikeFlowSupervision:
             return None
         b, model = hit
         tr = ctx.trainer
-        window = getattr(tr, "time_window", None)
-        admitted = window(ctx.step) if callable(window) else self.times[-1]
+        admitted = admitted_time(ctx, self.times[-1])
         pair = self.instants(float(b["instant"].time), admitted)
         if pair is None:
             return None

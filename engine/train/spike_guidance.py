@@ -39,7 +39,8 @@ from .losses import LossTerm
 from .presets import block_weight
 from .spike_crop import crop_box, crop_fraction, crop_view
 
-__all__ = ["SpikeGuidance", "guidance_factory", "make_fine_encoder", "spike_stream_info", "spike_view_guidance"]
+__all__ = ["SpikeGuidance", "admitted_time", "guidance_factory", "make_fine_encoder", "spike_stream_info",
+           "spike_view_guidance"]
 
 # No term reads the between-frame render's depth: without it the rasterizer composites 3
 # feature channels instead of 4, with the same colours and gradients bit for bit (issue 13;
@@ -422,6 +423,14 @@ def _tick_fine(tr, step, item, meta) -> None:
     enc = getattr(field, "fine_encoder", None)
     if isinstance(enc, SpikeFineEncoder):
         enc.encoded.tick()
+
+
+def admitted_time(ctx, last: float) -> float:
+    """The latest capture time the time curriculum has admitted at ``ctx.step`` (the trainer's
+    ``time_window``), or ``last`` for a trainer without one (the terms that ride on the
+    between-frame renders use only intervals whose ends are both admitted)."""
+    window = getattr(ctx.trainer, "time_window", None)
+    return window(ctx.step) if callable(window) else last
 
 
 def spike_view_guidance(trainer) -> SpikeGuidance | None:
