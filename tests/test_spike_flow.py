@@ -156,8 +156,8 @@ def test_loss_gradient_is_in_the_image_plane():
     assert float((g * ray).sum(1).abs().max()) < 1e-6 * float(g.norm(dim=1).max()) + 1e-9
 
 
-def _fake_supervision(steps=3):
-    cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_steps": steps})
+def _fake_supervision(steps=3, **over):
+    cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_steps": steps, **over})
     stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
         viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
     guid = types.SimpleNamespace(stream=stream, sensor=None)
@@ -374,9 +374,5 @@ def test_flow_junctions_take_the_other_end_from_the_flow():
 
 
 def test_unknown_junction_mode_is_refused():
-    cfg = get_preset("fast", {"spike_flow_junctions": "some"})
-    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
-        viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
-    tr = types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu"))
     with pytest.raises(ValueError, match="spike_flow_junctions"):
-        SpikeFlowSupervision(tr, types.SimpleNamespace(stream=stream, sensor=None))
+        _fake_supervision(spike_flow_junctions="some")

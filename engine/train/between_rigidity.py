@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import torch
 
+from ..scene import trajectory as traj
 from ..scene.rigidity import knn_neighbours, rigidity_losses
 from .along_ray import motion_frames
 from .losses import LossTerm
@@ -53,7 +54,7 @@ class BetweenRigidity:
         ts = self.times
         if len(ts) < 2 or t <= ts[0] or t >= ts[-1]:
             return None
-        k = max(i for i, v in enumerate(ts) if v <= t)
+        k, _ = traj.segment_of(ts, t)
         return k if ts[k + 1] <= admitted + 1e-9 else None
 
     def neighbours(self, model, k: int, step: int, static):
