@@ -154,7 +154,7 @@ def train_oracle(cap_path, out, seed: int, overrides: dict, oracle: bool = True)
     cls = spike_flow.SpikeFlowSupervision
     if oracle:
         tm = TrueMotion(cap)
-        cls.estimate = lambda self, T, t: tm.flow(T, t)
+        cls.estimate = lambda self, T, t, init=None: (*tm.flow(T, t), None)
     trace, fits = [], {}
     call = cls.__call__
 

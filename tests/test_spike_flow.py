@@ -165,9 +165,13 @@ def _fake_supervision(steps=3, **over):
     sup = SpikeFlowSupervision(tr, guid)
     calls = []
 
-    def estimate(t_ref, t):
+    def estimate(t_ref, t, init=None):
         calls.append((t_ref, t))
-        return np.full((60, 80, 2), t - t_ref, np.float32), np.ones((60, 80), bool)
+        sup.inits.append(None if init is None else (float(init[0][0, 0, 0]), float(init[1][0, 0, 0])))
+        fw = np.full((60, 80, 2), t - t_ref, np.float32)
+        return fw, np.ones((60, 80), bool), -fw
+
+    sup.inits = []
 
     sup.estimate = estimate
     return sup, calls
@@ -186,13 +190,34 @@ def test_instants_quantise_and_use_the_nearer_admitted_rgb_instant():
 
 
 def test_flow_cache_computes_each_pair_once():
-    sup, calls = _fake_supervision()
+    sup, calls = _fake_supervision(spike_flow_warm=False)
     f1, v1 = sup.flow(0.1, 0.125)
     f2, _ = sup.flow(0.1, 0.125 + 1e-6)  # the same spike frame
     assert len(calls) == 1 and f1 is f2
     assert f1.shape == (60, 80, 2) and v1.shape == (60, 80, 1)
     sup.flow(0.2, 0.125)
-    assert len(calls) == 2
+    assert len(calls) == 2 and sup.inits == [None, None]
+
+
+def test_warm_flows_start_from_the_grid_instant_one_step_closer():
+    """spike_flow_warm: the flow from an RGB instant to a grid instant starts from the (forward,
+    backward) pair to the grid instant one step closer to that RGB instant, computed first and
+    once; only chain ends with a successor are kept (grid 0.125, 0.15, 0.175 in [0.1, 0.2])."""
+    sup, calls = _fake_supervision()
+    assert get_preset("fast").spike_flow_warm  # on by default (README)
+    sup.flow(0.2, 0.125)  # back from 0.2: 0.175 from zero, then 0.15, then 0.125
+    assert [round(t, 6) for _, t in calls] == [0.175, 0.15, 0.125]
+    assert sup.inits[0] is None
+    assert np.allclose(sup.inits[1], (-0.025, 0.025)) and np.allclose(sup.inits[2], (-0.05, 0.05))
+    assert not sup._warm  # 0.125 is the last step from 0.2: nothing left to start from it
+    sup.flow(0.1, 0.15)  # ahead from 0.1: 0.125, then 0.15, which 0.175 will start from
+    assert [round(t, 6) for _, t in calls[3:]] == [0.125, 0.15] and sup.inits[3] is None
+    assert len(sup._warm) == 1
+    sup.flow(0.2, 0.15)  # cached: nothing computed
+    sup.flow(0.1, 0.175)
+    assert len(calls) == 6 and np.allclose(sup.inits[5], (0.05, -0.05)) and not sup._warm
+    sup.flow(0.1, 0.16)  # off the grid: from zero, alone
+    assert len(calls) == 7 and sup.inits[6] is None
 
 
 def test_switch_off_builds_no_term():
@@ -338,8 +363,8 @@ def test_flow_junctions_take_the_other_end_from_the_flow():
 
     sup, _ = _fake_supervision(steps=3)
     sup.cfg = sup.cfg.replace(spike_flow_min_px=0.5)
-    sup.estimate = lambda t_ref, t: (np.tile(np.array([4.0 * (t - t_ref) / 0.1, 0.0], np.float32), (60, 80, 1)),
-                                     np.ones((60, 80), bool))
+    sup.estimate = lambda t_ref, t, init=None: (
+        np.tile(np.array([4.0 * (t - t_ref) / 0.1, 0.0], np.float32), (60, 80, 1)), np.ones((60, 80), bool), None)
     m = _traj_model(n=12)
     g = m.gaussians
     ensure_temporal_opacity(g)
@@ -373,6 +398,76 @@ def test_flow_junctions_take_the_other_end_from_the_flow():
     assert sup.flow_junctions(m, 1, 0.1, 0.2, idx, uv)["moved"] == 0
 
 
+def test_flow_junctions_hand_their_change_to_hidden_neighbours():
+    """spike_flow_junctions_hidden: a Gaussian the spike view does not see, within
+    traj_carry_hidden x extent of a moved one, takes its change at the other end (the back of a
+    moved part moves with it); one farther away, and one born at the other end, keep theirs."""
+    from engine.scene import trajectory as traj
+    from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE
+    from engine.train.births import ensure_temporal_opacity
+
+    def run(hidden: bool):
+        sup, _ = _fake_supervision(steps=3, spike_flow_junctions_hidden=hidden, spike_flow_min_px=0.5)
+        sup.estimate = lambda t_ref, t, init=None: (
+            np.tile(np.array([4.0 * (t - t_ref) / 0.1, 0.0], np.float32), (60, 80, 1)), np.ones((60, 80), bool), None)
+        m = _traj_model(n=10)
+        g = m.gaussians
+        ensure_temporal_opacity(g)
+        params, knots = getattr(g, TRAJ_MEANS), m.trajectory["knots"]
+        with torch.no_grad():
+            at = g.means + traj.evaluate(params, knots, 0.1)
+            g.means[4] += at[0] - at[4] + torch.tensor([0.01, 0.0, 0.0])  # 1 cm behind a moved one
+            g.means[5] += at[0] - at[5] + torch.tensor([0.5, 0.0, 0.0])  # 50 cm: too far
+            g.means[6] += at[1] - at[6] + torch.tensor([0.0, 0.01, 0.0])  # born at 0.2: already there
+            getattr(g, TIME_CENTER)[6] = 0.2
+            getattr(g, TIME_LOG_SCALE)[6] = float(np.log(0.05))
+            g.means[7:] += 10.0
+            at = g.means + traj.evaluate(params, knots, 0.1)
+        before = params.detach().clone()
+        uv, _ = project(at[:4], VIEWMAT, K)
+        info = sup.flow_junctions(m, 1, 0.1, 0.2, torch.arange(4), uv, extent=1.0)  # radius 0.05
+        return info, before, params.detach()
+
+    info, before, after = run(True)
+    assert info["moved"] == 4 and info["hidden"] == 1
+    for j in (2, 3):  # junction 1 is at 0.1
+        assert torch.allclose(after[4, 3 * j] - before[4, 3], after[0, 3 * j] - before[0, 3], atol=1e-6)
+        assert float((after[4, 3 * j] - before[4, 3 * j]).norm()) > 1e-3
+    assert torch.equal(after[5:], before[5:])
+    info, before, after = run(False)
+    assert "hidden" not in info and torch.equal(after[4:], before[4:])
+
+
 def test_unknown_junction_mode_is_refused():
     with pytest.raises(ValueError, match="spike_flow_junctions"):
         _fake_supervision(spike_flow_junctions="some")
+
+
+def test_warm_flow_pair_finds_a_jump_that_a_flow_from_zero_misses():
+    """A textured disc (radius 10 px) on texture moves 25 px in 10 steps: from zero, DIS keeps
+    it near the background's flow; warm-started step by step (each pair from the previous
+    one), it follows the disc, and both directions agree (engine.train.spike_flow_pairs)."""
+    import cv2
+
+    from engine.train.spike_flow_pairs import warm_flow_pair
+
+    rng = np.random.default_rng(0)
+    h, w = 60, 80
+    bg = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 1.5)
+    fg = cv2.GaussianBlur(rng.random((h, w + 40)).astype(np.float32), (0, 0), 1.5) * 0.6 + 0.4
+    yy, xx = np.mgrid[0:h, 0:w]
+
+    def frame(dx: int):
+        disc = (xx - 20 - dx) ** 2 + (yy - 30) ** 2 <= 100
+        img = bg.copy()
+        img[disc] = np.roll(fg, dx, axis=1)[:, :w][disc]
+        return img, disc
+
+    first, disc = frame(0)
+    init = None
+    for k in range(1, 11):
+        fw, bw, ok = warm_flow_pair(first, frame(round(2.5 * k))[0], init)
+        init = (fw, bw)
+    cold, cold_ok = flow_pair(first, frame(25)[0])
+    assert np.abs(fw[disc][:, 0] - 25.0).mean() < 1.0 and ok[disc].mean() > 0.9
+    assert np.abs(cold[disc][:, 0] - 25.0).mean() > 10.0 and cold_ok[disc].mean() < 0.6

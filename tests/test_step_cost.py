@@ -11,7 +11,7 @@ import torch
 
 from engine.scene import trajectory as traj
 from engine.scene.model import TRAJ_MEANS
-from engine.train import losses, spike_flow
+from engine.train import losses, spike_flow, spike_flow_pairs
 
 pytestmark = pytest.mark.skipif(not traj.KERNELS.available(), reason="numba kernels unavailable")
 
@@ -149,8 +149,8 @@ def test_flow_pair_on_two_threads_equals_one_after_the_other(monkeypatch):
     for a, b in ((0, 1), (1, 2), (2, 0)):
         out = []
         for parallel in (False, True):
-            monkeypatch.setattr(spike_flow, "PARALLEL_PAIR", parallel)
-            out.append(spike_flow.flow_pair(imgs[a], imgs[b]))
+            monkeypatch.setattr(spike_flow_pairs, "PARALLEL_PAIR", parallel)
+            out.append(spike_flow_pairs.flow_pair(imgs[a], imgs[b]))
         assert np.array_equal(out[0][0].view(np.int32), out[1][0].view(np.int32))
         assert np.array_equal(out[0][1], out[1][1]) and out[1][1].any()
-    assert spike_flow._PAIR_POOL  # the worker was used
+    assert spike_flow_pairs._PAIR_POOL  # the worker was used

@@ -5,7 +5,7 @@ one instant (``engine.scene.trajectory.FUSED_CURVES``) at a knot and between kno
 "stepcost" round's paths (:func:`stepcost`): the spike-view flow term's subset positions
 (``spike_flow.FUSED_INNER``), the stereo depth term's pixels (``losses.HOIST_STEREO``) and the
 flow term's DIS flow pairs on the capture's spike grey images (``scene_flow.REUSE_DIS``,
-``spike_flow.PARALLEL_PAIR``; wall and CPU time). Prints CPU ms (best of ``--repeats``) and
+``spike_flow_pairs.PARALLEL_PAIR``; wall and CPU time). Prints CPU ms (best of ``--repeats``) and
 whether the results are identical."""
 from __future__ import annotations
 
@@ -111,7 +111,7 @@ def stepcost(args, knots) -> None:
     import types
 
     from engine.scene.model import TRAJ_MEANS
-    from engine.train import losses, scene_flow, spike_flow
+    from engine.train import losses, scene_flow, spike_flow, spike_flow_pairs
     from engine.train.presets import get_preset
     from engine.train.trainer import Trainer
 
@@ -163,14 +163,14 @@ def stepcost(args, knots) -> None:
     for _ in range(args.repeats):
         for label, reuse, parallel in (("new DIS per flow, serial", False, False), ("reused DIS", True, False),
                                        ("reused DIS, two threads", True, True)):
-            old = scene_flow.REUSE_DIS, spike_flow.PARALLEL_PAIR
-            scene_flow.REUSE_DIS, spike_flow.PARALLEL_PAIR = reuse, parallel
+            old = scene_flow.REUSE_DIS, spike_flow_pairs.PARALLEL_PAIR
+            scene_flow.REUSE_DIS, spike_flow_pairs.PARALLEL_PAIR = reuse, parallel
             try:
                 w0, c0 = time.perf_counter(), time.process_time()
                 out = [spike_flow.flow_pair(x, y) for x, y in pairs]
                 dw, dc = time.perf_counter() - w0, time.process_time() - c0
             finally:
-                scene_flow.REUSE_DIS, spike_flow.PARALLEL_PAIR = old
+                scene_flow.REUSE_DIS, spike_flow_pairs.PARALLEL_PAIR = old
             ref = out if ref is None else ref
             same &= all(np.array_equal(p[0], q[0]) and np.array_equal(p[1], q[1]) for p, q in zip(out, ref))
             prev = res.get(label, (float("inf"), float("inf")))

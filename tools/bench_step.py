@@ -45,7 +45,7 @@ from engine.scene import fused_adam, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import fused_ssim, interpolation, losses, scene_flow, spike_flow, spike_guidance
+from engine.train import fused_ssim, interpolation, losses, scene_flow, spike_flow, spike_flow_pairs, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -340,7 +340,7 @@ VARIANTS = {
                                "depth term's pixels by boolean masks every step (same numbers)",
                         "hexplane_sampler": "auto",
                         "patches": {(spike_flow, "FUSED_INNER"): False, (losses, "HOIST_STEREO"): False,
-                                    (scene_flow, "REUSE_DIS"): False, (spike_flow, "PARALLEL_PAIR"): False}},
+                                    (scene_flow, "REUSE_DIS"): False, (spike_flow_pairs, "PARALLEL_PAIR"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

@@ -48,38 +48,44 @@ REUSE_DIS = True
 _DIS = threading.local()
 
 
-def _dis(finest_scale: int | None):
-    """OpenCV's DIS (medium preset, ``finest_scale`` set unless None): this thread's own object
-    when :data:`REUSE_DIS` (a DIS object must not run two flows at once), else a new one."""
-    if not REUSE_DIS:
-        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        if finest_scale is not None:
-            dis.setFinestScale(int(finest_scale))
-        return dis
-    cache = _DIS.__dict__.setdefault("by_scale", {})
-    key = None if finest_scale is None else int(finest_scale)
+def _dis(finest_scale: int | None, mean_normalization: bool = True):
+    """OpenCV's DIS (medium preset, ``finest_scale`` set unless None, its patch mean
+    normalisation on or off): this thread's own object when :data:`REUSE_DIS` (a DIS object
+    must not run two flows at once), else a new one."""
+    key = (None if finest_scale is None else int(finest_scale), bool(mean_normalization))
+    cache = _DIS.__dict__.setdefault("by_scale", {}) if REUSE_DIS else {}
     dis = cache.get(key)
     if dis is None:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        if key is not None:
-            dis.setFinestScale(key)
+        if key[0] is not None:
+            dis.setFinestScale(key[0])
+        dis.setUseMeanNormalization(key[1])
         cache[key] = dis
     return dis
 
 
-def dense_flow(a_u8: np.ndarray, b_u8: np.ndarray, upsample: int = 2, finest_scale: int | None = 0) -> np.ndarray:
+def dense_flow(a_u8: np.ndarray, b_u8: np.ndarray, upsample: int = 2, finest_scale: int | None = 0,
+               init: np.ndarray | None = None, mean_normalization: bool = True) -> np.ndarray:
     """OpenCV's DIS optical flow (medium preset) [h, w, 2] (x, y pixels) between 8-bit grey
     images with ``a(p) ~ b(p + flow(p))`` (OpenCV's ``calc(prev=a, next=b)`` convention).
     Small images (a spike frame is e.g. 80 x 60) are upsampled ``upsample`` x so DIS's
     patches and pyramid have room, and the flow is brought back to the input's pixels;
-    ``finest_scale`` is DIS's finest pyramid level (0: full resolution; None: the preset's)."""
+    ``finest_scale`` is DIS's finest pyramid level (0: full resolution; None: the preset's).
+    ``init`` [h, w, 2] (input pixels): a flow DIS starts from instead of zero (a warm start:
+    OpenCV takes a flow passed to ``calc`` as its initial estimate);
+    ``mean_normalization``: DIS's per-patch mean normalisation."""
     h, w = a_u8.shape
     s = max(1, int(upsample))
     if s > 1:
         a_u8 = cv2.resize(a_u8, (w * s, h * s), interpolation=cv2.INTER_CUBIC)
         b_u8 = cv2.resize(b_u8, (w * s, h * s), interpolation=cv2.INTER_CUBIC)
-    dis = _dis(finest_scale)
-    flow = dis.calc(np.ascontiguousarray(a_u8), np.ascontiguousarray(b_u8), None)
+    if init is not None:
+        init = np.asarray(init, np.float32)
+        if s > 1:
+            init = cv2.resize(init, (w * s, h * s), interpolation=cv2.INTER_LINEAR) * float(s)
+        init = np.ascontiguousarray(init, dtype=np.float32)
+    dis = _dis(finest_scale, mean_normalization)
+    flow = dis.calc(np.ascontiguousarray(a_u8), np.ascontiguousarray(b_u8), init)
     if s > 1:
         flow = cv2.resize(flow, (w, h), interpolation=cv2.INTER_AREA) / float(s)
     return flow.astype(np.float32)

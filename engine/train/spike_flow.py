@@ -40,7 +40,6 @@ cube's image-plane error 31.5 -> 11.8 mm; demo +0.14 / +0.18, fast +0.28 / +0.14
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 
@@ -49,69 +48,18 @@ from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
 from .baselines import spike_to_gray
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
+from .spike_flow_pairs import flow_pair, forward_backward_valid, gray_to_u8, warm_flow_pair
 from .spike_guidance import admitted_time, spike_view_guidance
 from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
 
-__all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "sample_map",
-           "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals", "inner_only_positions",
-           "subset_positions", "SpikeFlowSupervision", "spike_flow_factory"]
+__all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "warm_flow_pair",
+           "sample_map", "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals",
+           "inner_only_positions", "subset_positions", "SpikeFlowSupervision", "spike_flow_factory"]
 
 
 # ------------------------------------------------------------------------------ functional
-def gray_to_u8(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two linear-luminance images [h, w] -> uint8 with one shared scale (the 99.5th
-    percentile of both) and a 1/2.2 gamma, so dark texture keeps contrast for the flow."""
-    hi = float(np.percentile(np.concatenate([a.ravel(), b.ravel()]), 99.5)) or 1.0
-    enc = lambda x: (np.clip(x / hi, 0.0, 1.0) ** (1.0 / 2.2) * 255.0 + 0.5).astype(np.uint8)  # noqa: E731
-    return enc(a), enc(b)
-
-
-def forward_backward_valid(fw: np.ndarray, bw: np.ndarray, tol_px: float = 0.5, tol_rel: float = 0.1) -> np.ndarray:
-    """bool [h, w]: pixels whose forward flow lands inside the image and comes back with the
-    backward flow: ``|fw(p) + bw(p + fw(p))| <= tol_px + tol_rel (|fw| + |bw(p + fw)|)``."""
-    h, w = fw.shape[:2]
-    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    mx, my = gx + fw[..., 0], gy + fw[..., 1]
-    back = cv2.remap(bw, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    err = np.linalg.norm(fw + back, axis=-1)
-    mag = np.linalg.norm(fw, axis=-1) + np.linalg.norm(back, axis=-1)
-    inside = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
-    return inside & (err <= tol_px + tol_rel * mag)
-
-
-# True: flow_pair runs the backward flow on a second thread while this one runs the forward flow
-# (OpenCV releases the GIL; each thread has its own DIS object, scene_flow.REUSE_DIS): the same
-# flows, in about half the wall time of a pair when a core is free, the same CPU time. The flows are
-# most of what the spike-view flow term costs (~15 % of a guided step in a 200-step fast run, measured).
-# False: one after the other (bench-step's "stepcost-before" variant)
-PARALLEL_PAIR = True
-_PAIR_POOL: list = []  # one lazily started worker thread, shared by the process's runs
-
-
-def _pair_pool():
-    if not _PAIR_POOL:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _PAIR_POOL.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="bt4d-flow"))
-    return _PAIR_POOL[0]
-
-
-def flow_pair(gray_a: np.ndarray, gray_b: np.ndarray, *, upsample: int = 2, tol_px: float = 0.5
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """(flow a -> b [h, w, 2], valid bool [h, w]) between two linear grey images [h, w]."""
-    a8, b8 = gray_to_u8(gray_a, gray_b)
-    if PARALLEL_PAIR:
-        back = _pair_pool().submit(dense_flow, b8, a8, upsample)
-        fw = dense_flow(a8, b8, upsample)
-        bw = back.result()
-    else:
-        fw = dense_flow(a8, b8, upsample)
-        bw = dense_flow(b8, a8, upsample)
-    return fw, forward_backward_valid(fw, bw, tol_px)
-
-
 class _InnerAt(torch.autograd.Function):
     """``base + sum_j w_j params[idx, c_j]`` [M, C] (the curves of rows ``idx`` at one instant,
     ``traj.segment_weights``); the backward writes ``w_j * grad`` into rows ``idx`` of the inner
@@ -228,6 +176,7 @@ class SpikeFlowSupervision:
         self.times = list(trainer.frame_times)
         self._gray: dict[int, np.ndarray] = {}
         self._flows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+        self._warm: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # chain ends (spike_flow_warm)
         self.last: dict = {}  # diagnostics of the last evaluation
         self.fitted: dict[int, dict] = {}  # interval -> counts of its fit (spike_flow_fit)
         self._surface: dict[float, tuple] = {}  # t_ref -> (step, Gaussian count, indices)
@@ -247,21 +196,50 @@ class SpikeFlowSupervision:
         return self._gray[k]
 
     def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """(flow ref -> t [h, w, 2], valid float [h, w, 1]) as tensors on the trainer's device (cached)."""
+        """(flow ref -> t [h, w, 2], valid float [h, w, 1]) as tensors on the trainer's device
+        (cached). With ``spike_flow_warm`` the flow to a grid instant starts from the flow to
+        the grid instant one step closer to ``t_ref`` (engine.train.spike_flow_pairs), so the
+        pairs of a reference are computed in order, each once."""
         key = (self.frame_of(t_ref), self.frame_of(t))
         hit = self._flows.get(key)
         if hit is None:
-            fl, ok = self.estimate(t_ref, t)
+            prev, more = self.warm_from(t_ref, t)
+            init = None
+            if prev is not None:
+                self.flow(t_ref, prev)
+                init = self._warm.pop((key[0], self.frame_of(prev)), None)
+            fl, ok, back = self.estimate(t_ref, t, init)
+            if more:  # only the latest pair of a chain is kept, for the next one
+                self._warm[key] = (fl, back)
             dev = self.trainer.device
             hit = (torch.as_tensor(fl, dtype=torch.float32, device=dev),
                    torch.as_tensor(ok, dtype=torch.float32, device=dev)[..., None])
             self._flows[key] = hit
         return hit
 
-    def estimate(self, t_ref: float, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """(flow [h, w, 2], valid bool [h, w]) from the spike stream (the oracle script
+    def warm_from(self, t_ref: float, t: float) -> tuple[float | None, bool]:
+        """(the grid instant one step from ``t`` towards ``t_ref`` (an end of ``t``'s RGB
+        interval) whose flow warm-starts ``t``'s, or None at the first step, off the grid or
+        with ``spike_flow_warm`` off; whether a later step will start from ``t``'s flow)."""
+        ts = self.times
+        if not self.cfg.spike_flow_warm or not ts or not ts[0] < t < ts[-1]:
+            return None, False
+        k = max(i for i, v in enumerate(ts) if v <= t)
+        a, b = ts[k], ts[k + 1]
+        n1 = max(1, int(self.cfg.spike_flow_steps)) + 1
+        q = int(round((t - a) / (b - a) * n1))
+        if self.frame_of(a + (b - a) * q / n1) != self.frame_of(t) or t_ref not in (a, b):
+            return None, False
+        step = -1 if t_ref == a else 1
+        prev, nxt = q + step, q - step
+        return (None if prev in (0, n1) else a + (b - a) * prev / n1), nxt not in (0, n1)
+
+    def estimate(self, t_ref: float, t: float, init: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(flow [h, w, 2], valid bool [h, w], backward flow [h, w, 2]) from the spike stream,
+        warm-started from ``init`` (forward, backward) when given (the oracle script
         ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion)."""
-        return flow_pair(self.gray(t_ref), self.gray(t), tol_px=float(self.cfg.spike_flow_fb_tol))
+        fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, tol_px=float(self.cfg.spike_flow_fb_tol))
+        return fw, ok, bw
 
     # --- instants ------------------------------------------------------------------------
     def instants(self, t: float, admitted: float) -> tuple[float, float] | None:
@@ -334,7 +312,8 @@ class SpikeFlowSupervision:
         moved = {}
         mode = self.cfg.spike_flow_junctions
         if mode != "none":  # before the inner fit, which starts from the moved curves
-            moved["junctions_ahead"] = self.flow_junctions(model, k, a, b, idx, uv_ref, born_only=mode == "born")
+            moved["junctions_ahead"] = self.flow_junctions(model, k, a, b, idx, uv_ref, born_only=mode == "born",
+                                                           extent=extent)
             # those born at the right end (after the carry) take their place at the left one
             moved["junctions_back"] = self.flow_junctions(model, k, b, a, *self.surface(model, b), born_only=True)
         if idx.numel() == 0:
@@ -386,7 +365,7 @@ class SpikeFlowSupervision:
 
     @torch.no_grad()
     def flow_junctions(self, model: Model4D, k: int, ref: float, other: float, idx: torch.Tensor,
-                       uv_ref: torch.Tensor, born_only: bool = False) -> dict:
+                       uv_ref: torch.Tensor, born_only: bool = False, extent: float = 0.0) -> dict:
         """Put the curves of the Gaussians that are the visible surface at ``ref`` (one end of
         interval ``k``; ``idx``, pixels ``uv_ref``) where the spike view's flow says they are at
         the interval's other end ``other`` (``spike_flow_junctions``; ``born_only``: only those
@@ -399,7 +378,10 @@ class SpikeFlowSupervision:
         README "Births that move"), so curves and births stay behind and the object between two
         RGB instants is a cross-fade of two copies (the ghost). The spike view sees the whole
         motion at 20 kHz. Depth is the Gaussian's at ``ref``: the curve's own depth at ``other``
-        (the stereo-lifted carry) measured worse (README). Returns counts for run.json."""
+        (the stereo-lifted carry) measured worse (README). With ``spike_flow_junctions_hidden``
+        (``extent`` > 0, not ``born_only``) the Gaussians it does not see take the change of the
+        nearest moved one within ``traj_carry_hidden`` x ``extent`` (the back of a spinning ball),
+        except those born at ``other``. Returns counts for run.json."""
         info = {"surface": int(idx.numel()), "moved": 0}
         if idx.numel() == 0:
             return info
@@ -435,6 +417,27 @@ class SpikeFlowSupervision:
         for j in moved:
             tm[idx, 3 * j] = new
         info["moved"] = int(idx.numel())
+        radius = float(self.cfg.traj_carry_hidden) * extent
+        if self.cfg.spike_flow_junctions_hidden and not born_only and radius > 0:
+            # what the spike view does not see of a moved part (its back, its inside) moves with it
+            pos = (g.means + traj.evaluate(getattr(g, TRAJ_MEANS), knots, ref)).cpu().numpy()
+            full = np.zeros_like(pos)
+            full[idx.cpu().numpy()] = d.cpu().numpy()
+            decided = np.zeros(len(pos), dtype=bool)
+            decided[idx.cpu().numpy()] = True
+            static = model.effective_static_mask()
+            if static is not None:
+                decided |= static.cpu().numpy()  # still surfaces hand over no motion
+            full, taken = propagate_to_hidden(pos, full, decided, radius)
+            taken &= np.abs(full).sum(1) > 0
+            if TIME_CENTER in g.extra_lrs:  # born at ``other``: already there
+                tc = getattr(g, TIME_CENTER).detach()[:, 0].cpu()
+                taken &= ~(born_mask(g).cpu() & ((tc - other).abs() < (tc - ref).abs())).numpy()
+            h = torch.from_numpy(np.nonzero(taken)[0]).to(tm.device)
+            dh = torch.from_numpy(full[taken]).to(tm)
+            for j in moved:
+                tm[h, 3 * j] = tm[h, 3 * j_ref] + dh
+            info["hidden"] = int(taken.sum())
         return info
 
     def after_step(self, tr, step, item, meta) -> None:
