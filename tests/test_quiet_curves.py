@@ -8,7 +8,7 @@ import torch
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS
 from engine.spike.change import SpikeChange
 from engine.train.presets import get_preset
-from engine.train.quiet_curves import inner_keep, quiet_segments, zero_inner
+from engine.train.quiet_curves import inner_keep, junction_groups, quiet_segments, tie_junctions, zero_inner
 
 W, H = 16, 8  # spike view (px); 4 x 2 change blocks of 4 px
 
@@ -68,6 +68,46 @@ def test_zero_inner_clears_only_the_quiet_segments_inner_points():
     assert torch.equal(again, p) and inner_keep(quiet, 4).shape == (3, 7, 4)
 
 
+def test_tie_junctions_holds_a_run_of_quiet_segments_at_its_mean_and_nothing_else():
+    quiet = torch.tensor([[True, True, False], [False, False, False], [False, True, True]])
+    assert junction_groups(quiet).view(3, 4).tolist() == [[0, 0, 0, 1], [4, 5, 6, 7], [8, 9, 9, 9]]
+    p = torch.randn(3, 10, 3)  # F = 4 knots: junctions at columns 0, 3, 6, 9
+    before = p.clone()
+    tie_junctions(p, junction_groups(quiet))
+    j, j0 = p[:, 0::3], before[:, 0::3]
+    assert torch.allclose(j[0, :3], j0[0, :3].mean(0).expand(3, 3)) and torch.equal(j[0, 3], j0[0, 3])
+    assert torch.equal(j[1], j0[1])  # nothing quiet: untouched
+    assert torch.equal(j[2, 0], j0[2, 0]) and torch.allclose(j[2, 1:], j0[2, 1:].mean(0).expand(3, 3))
+    inner = torch.ones(10, dtype=torch.bool)
+    inner[0::3] = False
+    assert torch.equal(p[:, inner], before[:, inner])  # inner control points are zero_inner's business
+
+
+@pytest.mark.slow
+def test_trainer_ties_the_junctions_of_quiet_segments(demo_capture):
+    """quiet_junctions: after real guided steps on the demo capture, each segment the hook calls
+    quiet has equal junctions at both ends (positions and rotations); segments over a change
+    keep theirs apart. Without the switch the quiet segments' junctions differ (checked)."""
+    from engine.io.capture import load_capture
+    from engine.train.trainer import Trainer
+
+    gaps = {}
+    for on in (True, False):
+        tr = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "quiet_junctions": on}), device="cpu")
+        tr.init_model()
+        for step in range(_TINY["iterations"]):
+            tr.step(step)
+        used = tr.quiet_curves._mask[2]
+        assert 0.05 < float(used.float().mean()) < 0.95
+        for name in (TRAJ_MEANS, TRAJ_QUATS):
+            j = getattr(tr.model.gaussians, name).detach()[:, 0::3]
+            gap = (j[:, 1:] - j[:, :-1]).norm(dim=-1)  # [N, F-1]
+            gaps[(on, name)] = (float(gap[used].max()), float(gap[~used].max()))
+    assert gaps[(True, TRAJ_MEANS)][0] < 1e-6 and gaps[(True, TRAJ_QUATS)][0] < 1e-6
+    assert gaps[(True, TRAJ_MEANS)][1] > 1e-4  # over a change: apart
+    assert gaps[(False, TRAJ_MEANS)][0] > 1e-4  # what the switch exists to stop
+
+
 _TINY = {"iterations": 12, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
          "densify_from": 2.0, "densify_until": 2.0, "between_colocated_p": 1.0, "time_curriculum": 0.0,
          "spike_skip_static": False, "traj_carry": "velocity", "birth_error": 0.0}
@@ -121,6 +161,7 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     from engine.train.quiet_curves import quiet_curves_factory
 
     assert get_preset("fast").quiet_curves and get_preset("fast").quiet_curves_dilate == 1  # on (README)
+    assert not get_preset("fast").quiet_junctions  # off (README)
     cfg = get_preset("fast", {"quiet_curves": True})
     tr = types.SimpleNamespace(cfg=cfg, spike_guidance=None, post_step_hooks=[])
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # rgb_only / no spikes: nothing

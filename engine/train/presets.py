@@ -298,6 +298,11 @@ class TrainConfig:
     # between 21.80 / 21.83 / 21.69 (0 clips the moving objects' edges)
     quiet_curves: bool = True
     quiet_curves_dilate: int = 1
+    # quiet_junctions: the junctions joined by quiet segments are also held equal (their mean): a Gaussian
+    # the spike view saw still over a run of RGB intervals stays where it was. Off: 1000 fast steps, seeds
+    # 0 / 1 / 2, between RGB frames: demo +0.13 / +0.27 / -0.05, fast +0.26 / +0.05, between -0.13 / -0.14 /
+    # -0.06 dB (README "Where the demo loses to the Interpolate baseline")
+    quiet_junctions: bool = False
     baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img
     baseline_per_interval: int = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
     # how the full model (and the baselines) treat the synthetic frames (issue 11, engine.train.baselines):

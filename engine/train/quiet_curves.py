@@ -24,6 +24,12 @@ or over a change keep their bends. Applied after every optimiser step (a project
 the constraint, also undoing the flow fit's changes there); the mask is recomputed when the
 Gaussian count changes and every :attr:`QuietCurves.REFRESH` steps (junctions move slowly).
 
+``quiet_junctions`` (off) also holds the junctions joined by a run of quiet segments at their
+mean (:func:`tie_junctions`): each RGB instant fits a Gaussian's place on its own (consecutive
+places differ by a median 4 cm on the demo), and half-way between two places a still wall's
+texture is misaligned (README "Where the demo loses to the Interpolate baseline"). It pays on
+the demo and the fast scene and costs ``between`` (measured there), so it stays off.
+
 Measured (README "Quiet curves"; 1000 fast steps, seeds 0 / 1, full - RGB-only between RGB
 frames at the eval cameras, off -> on): demo -0.24 / -0.27 -> +0.30 / +0.24 dB, fast +0.13 /
 +0.11 -> +0.20 / +0.43, ``between`` +1.53 / +1.26 -> +1.47 / +1.38 (moving pixels +2.49 / +2.15
@@ -40,7 +46,8 @@ from ..scene.fine_deformation import project_to_grid
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS
 from .spike_guidance import spike_stream_info
 
-__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "QuietCurves", "quiet_curves_factory"]
+__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "junction_groups", "tie_junctions",
+           "QuietCurves", "quiet_curves_factory"]
 
 
 def quiet_segments(means: torch.Tensor, junctions: torch.Tensor, change, intervals, viewmat: torch.Tensor,
@@ -101,6 +108,33 @@ def zero_inner(params: torch.Tensor, quiet: torch.Tensor, keep: torch.Tensor | N
     params.data.mul_(inner_keep(quiet) if keep is None else keep)
 
 
+def junction_groups(quiet: torch.Tensor) -> torch.Tensor:
+    """long [N * F]: for each row and junction of ``quiet`` [N, F-1], a flat index shared by the
+    junctions joined by quiet segments (a run of quiet segments ``k0 .. k1`` joins junctions
+    ``k0 .. k1 + 1``), distinct otherwise (row-major, ``row * F + group``)."""
+    n, s = quiet.shape
+    new_group = torch.ones(n, s + 1, dtype=torch.long, device=quiet.device)
+    new_group[:, 0] = 0
+    new_group[:, 1:] = (~quiet).long()
+    rows = torch.arange(n, device=quiet.device)[:, None] * (s + 1)
+    return (rows + new_group.cumsum(1)).reshape(-1)
+
+
+@torch.no_grad()
+def tie_junctions(params: torch.Tensor, groups: torch.Tensor) -> None:
+    """Set the junctions (columns ``0::3``) of ``params`` [N, K, C] joined by quiet segments
+    (``groups``: :func:`junction_groups`) to their mean, in place: where the spike view saw
+    nothing change over a run of RGB intervals, the Gaussian is where it was."""
+    n, _, c = params.shape
+    junctions = params.data[:, 0::3]
+    f = junctions.shape[1]
+    flat = junctions.reshape(n * f, c)
+    sums = torch.zeros(n * f, c, dtype=params.dtype, device=params.device).index_add_(0, groups, flat)
+    counts = torch.zeros(n * f, dtype=params.dtype, device=params.device).index_add_(
+        0, groups, torch.ones(n * f, dtype=params.dtype, device=params.device))
+    params.data[:, 0::3] = (sums[groups] / counts[groups, None]).reshape(n, f, c)
+
+
 class QuietCurves:
     """Post-step hook of a run (see the module doc)."""
 
@@ -144,11 +178,16 @@ class QuietCurves:
         quiet = self.mask(model, step)
         keeps = self._mask[3]
         g = model.gaussians
+        tie = bool(self.cfg.quiet_junctions)
+        if tie and "groups" not in keeps:
+            keeps["groups"] = junction_groups(quiet)
         for params in (getattr(g, TRAJ_MEANS), getattr(g, TRAJ_QUATS)):
             c = int(params.shape[-1])
             if c not in keeps:
                 keeps[c] = inner_keep(quiet, c)
             zero_inner(params, quiet, keeps[c])
+            if tie:
+                tie_junctions(params, keeps["groups"])
 
 
 def quiet_curves_factory(trainer) -> list:
