@@ -4,8 +4,8 @@
 For every RGB interval and both of its ends ``T``, the flows from ``T`` to the
 ``spike_flow_steps`` grid instants of the interval are computed as the flow term does, from
 zero (``flow_pair``) and warm-started along the grid (``warm_flow_pair``), and compared with the
-true motion of each object's visible surface samples (the capture's ``ground_truth.objects``:
-poses and surface samples; visible = nearest sample in its spike pixel, 2 cm slack). Printed per
+true motion of each object's visible surface samples (the capture's ``ground_truth.objects``,
+:func:`engine.io.ground_truth.points_at`; visible = nearest sample in its spike pixel, 2 cm slack). Printed per
 object, method and half of the interval (near / far from ``T``): the share of the points that
 pass the forward-backward check, their mean end-point error, their mean true motion, and the
 share of them whose flow is worse than no flow at all::
@@ -26,28 +26,17 @@ if str(REPO) not in sys.path:
 
 from engine.cameras import project_points  # noqa: E402
 from engine.io.capture import load_capture  # noqa: E402
+from engine.io.ground_truth import points_at  # noqa: E402
 from engine.spike.render import estimate_sensor  # noqa: E402
 from engine.train.baselines import spike_to_gray  # noqa: E402
 from engine.train.spike_flow_pairs import flow_pair, warm_flow_pair  # noqa: E402
 from engine.train.spike_guidance import spike_stream_info  # noqa: E402
 
 
-def pose(truth, name: str, t: float) -> np.ndarray:
-    """Object-to-world [4, 4] at ``t`` (translation interpolated, rotation of the nearer sample)."""
-    times, mats = truth["times"], truth[name]
-    i = int(np.clip(np.searchsorted(times, t) - 1, 0, len(times) - 2))
-    a = float(np.clip((t - times[i]) / max(times[i + 1] - times[i], 1e-12), 0.0, 1.0))
-    m = mats[i if a < 0.5 else i + 1].copy()
-    m[:3, 3] = (1 - a) * mats[i][:3, 3] + a * mats[i + 1][:3, 3]
-    return m
-
-
 def visible_motion(truth, name: str, view, w: int, h: int, t_ref: float, t: float):
     """(spike pixels [M, 2] at ``t_ref`` of the object's visible samples, their true motion [M, 2])."""
-    pts = truth[f"{name}_points"].astype(np.float64)
-    ma, mt = pose(truth, name, t_ref), pose(truth, name, t)
-    uva, za = project_points(view, pts @ ma[:3, :3].T + ma[:3, 3])
-    uvt, _ = project_points(view, pts @ mt[:3, :3].T + mt[:3, 3])
+    uva, za = project_points(view, points_at(truth, name, t_ref))
+    uvt, _ = project_points(view, points_at(truth, name, t))
     inside = (uva[:, 0] >= 0) & (uva[:, 0] < w) & (uva[:, 1] >= 0) & (uva[:, 1] < h) & (za > 0)
     pix = np.clip(np.floor(uva[:, 1]).astype(int) * w + np.floor(uva[:, 0]).astype(int), 0, w * h - 1)
     zmin = np.full(w * h, np.inf)

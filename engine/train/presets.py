@@ -270,7 +270,7 @@ class TrainConfig:
     spike_flow_steps: int = 15  # between instants per RGB interval with a cached flow
     spike_flow_fb_tol: float = 0.5  # forward-backward consistency tolerance (spike px, + 10 % of |flow|)
     # each grid instant's flow starts from the one a step closer to its RGB instant (spike_flow_pairs): on
-    # the fast scene's ball the far half-interval's error 15.4 -> 6.1 px (motion ~18 px); False: from zero.
+    # the fast scene's ball the far half-interval's error 14.6 -> 5.8 px (motion 16-17 px); False: from zero.
     # 1000 fast steps, seeds 0 / 1 / 2, eval between RGB frames: fast +0.47 / +0.50, between +0.01 / -0.17 /
     # +0.10, demo +0.16 / -0.04 / +0.19 dB (README "The spike flow lost the ball too")
     spike_flow_warm: bool = True

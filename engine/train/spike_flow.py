@@ -217,17 +217,19 @@ class SpikeFlowSupervision:
             self._flows[key] = hit
         return hit
 
+    def grid_step(self, t: float) -> tuple[float, float, int, int]:
+        """(a, b, q, n + 1): ``t``'s RGB interval [a, b] and its nearest grid index q, not clamped."""
+        k = max(i for i, v in enumerate(self.times) if v <= t)  # ts[0] < t < ts[-1]
+        a, b, n1 = self.times[k], self.times[k + 1], max(1, int(self.cfg.spike_flow_steps)) + 1
+        return a, b, int(round((t - a) / (b - a) * n1)), n1
+
     def warm_from(self, t_ref: float, t: float) -> tuple[float | None, bool]:
         """(the grid instant one step from ``t`` towards ``t_ref`` (an end of ``t``'s RGB
         interval) whose flow warm-starts ``t``'s, or None at the first step, off the grid or
         with ``spike_flow_warm`` off; whether a later step will start from ``t``'s flow)."""
-        ts = self.times
-        if not self.cfg.spike_flow_warm or not ts or not ts[0] < t < ts[-1]:
+        if not self.cfg.spike_flow_warm or not self.times or not self.times[0] < t < self.times[-1]:
             return None, False
-        k = max(i for i, v in enumerate(ts) if v <= t)
-        a, b = ts[k], ts[k + 1]
-        n1 = max(1, int(self.cfg.spike_flow_steps)) + 1
-        q = int(round((t - a) / (b - a) * n1))
+        a, b, q, n1 = self.grid_step(t)
         if self.frame_of(a + (b - a) * q / n1) != self.frame_of(t) or t_ref not in (a, b):
             return None, False
         step = -1 if t_ref == a else 1
@@ -248,11 +250,9 @@ class SpikeFlowSupervision:
         ts = self.times
         if not ts or t <= ts[0] or t >= ts[-1]:
             return None
-        k = max(i for i, v in enumerate(ts) if v <= t)
-        a, b = ts[k], ts[k + 1]
-        n = max(1, int(self.cfg.spike_flow_steps))
-        q = min(n, max(1, int(round((t - a) / (b - a) * (n + 1)))))
-        tq = a + (b - a) * q / (n + 1)
+        a, b, q, n1 = self.grid_step(t)
+        q = min(n1 - 1, max(1, q))
+        tq = a + (b - a) * q / n1
         cands = [v for v in (a, b) if v <= admitted + 1e-9]
         if not cands:
             return None

@@ -6,11 +6,11 @@ the forward-backward check that keeps the pixels where they agree. A **warm star
 starts both flows from a pair computed one step closer in time, so a large displacement is
 found as a chain of small refinements while each flow still compares the two images
 themselves (no error accumulates as in chaining flows end to end). Measured on the fast
-scene's ball (~27 spike px per RGB interval, its grey texture faint; /work/coord/ov/k/flowval.py,
+scene's ball (~27 spike px per RGB interval, its grey texture faint; scripts/spike_flow_objects.py,
 the 15 grid instants of every interval against the ground-truth motion of its visible surface
 points): at the far half of an interval the end-point error on pixels that pass the check is
-6.1 px with the warm start against 15.4 px from zero (|motion| 17-18 px), 79 % of them pass
-against 60 %, and 7 % are worse than no flow against 44 %; on ``between`` (cube, ball,
+5.8 px with the warm start against 14.6 px from zero (|motion| 16-17 px), 80 % of them pass
+against 60 %, and 7 % are worse than no flow against 42 %; on ``between`` (cube, ball,
 turntable: a few px) the two are equal within 0.1 px. DIS's patch mean normalisation is off
 when warm: the ball's centre error 0.15 of its motion against 0.21 with it (16 steps).
 
