@@ -17,8 +17,9 @@ from ..scene.model import TRAJ_MEANS
 from ..scene.rigidity import knn_neighbours, rigidity_losses
 from ..scene.trajectory import inner_residual_sq
 from .fused_ssim import fused_ssim
-from .geometry_losses import geometry_loss_terms
+from .geometry_losses import geometry_loss_terms, step_background
 from .presets import TrainConfig
+from .still_hold import StillHold
 
 __all__ = ["LossTerm", "StepContext", "default_loss_terms", "frame_item_fields"]
 
@@ -77,14 +78,44 @@ def _l1(ctx: StepContext):
 
 def _dssim(ctx: StepContext):
     target, w = _frame_target(ctx)
-    fused = fused_ssim(ctx.rgb, target)  # the same SSIM in two numba passes (issue 13)
+    d = dssim(ctx.rgb, target)
+    return None if d is None else d * w
+
+
+def dssim(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor | None:
+    """1 - SSIM of two [1, H, W, 3] images (None under 11 px a side)."""
+    fused = fused_ssim(rgb, target)  # the same SSIM in two numba passes (issue 13)
     if fused is not None:
-        return (1.0 - fused) * w
-    pred = ctx.rgb.permute(0, 3, 1, 2)
+        return 1.0 - fused
+    pred = rgb.permute(0, 3, 1, 2)
     gt = target.permute(0, 3, 1, 2)
     if min(pred.shape[-2:]) < 11:
         return None
-    return (1.0 - ssim(pred, gt, data_range=1.0, size_average=True)) * w
+    return 1.0 - ssim(pred, gt, data_range=1.0, size_average=True)
+
+
+def _still_term(hold: StillHold):
+    """The still hold (engine.train.still_hold): the frame loss of a render between two RGB
+    frames against their blend, on their still pixels only (elsewhere the render is its own target)."""
+    def term(ctx: StepContext):
+        tr = ctx.trainer
+        drawn = hold.sample(tr, ctx.step)
+        if drawn is None:
+            return None
+        vt, t, blend, still = drawn
+        gated = hold.spike_view(tr) is not None
+        rgb, alpha, meta, _ = tr.model.render(vt, t, render_depth=gated,
+                                              background=step_background(tr.cfg, ctx.step, tr.seed, tr.device))
+        if gated and meta.get("depths") is not None:
+            seen = hold.spike_still(tr, vt, float(vt["time"]), meta["depths"][0, ..., 0].detach(),
+                                    alpha[0, ..., 0].detach())
+            still = still if seen is None else still & seen
+        target = torch.where(still, blend, rgb.detach())
+        lam = float(tr.cfg.lambda_dssim)
+        loss = (rgb - target).abs().mean() * (1.0 - lam)
+        d = dssim(rgb, target) if lam > 0 else None
+        return loss if d is None else loss + lam * d
+    return term
 
 
 def _block_l1(ctx: StepContext):
@@ -180,4 +211,6 @@ def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
         terms.append(LossTerm("rigidity", cfg.rigidity_weight, _rigidity, stages=("deform",)))
     if "trajectory" in cfg.motion and cfg.traj_inner_weight > 0:
         terms.append(LossTerm("traj_reg", cfg.traj_inner_weight, _traj_reg, stages=("deform",)))
+    if "trajectory" in cfg.motion and cfg.still_weight > 0:
+        terms.append(LossTerm("still", cfg.still_weight, _still_term(StillHold(cfg)), stages=("deform",)))
     return terms

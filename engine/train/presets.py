@@ -303,6 +303,19 @@ class TrainConfig:
     # 0 / 1 / 2, between RGB frames: demo +0.13 / +0.27 / -0.05, fast +0.26 / +0.05, between -0.13 / -0.14 /
     # -0.06 dB (README "Where the demo loses to the Interpolate baseline")
     quiet_junctions: bool = False
+    # still hold (issue 11, engine.train.still_hold): every still_every-th deformation step also renders
+    # a train camera at a random instant between two of its RGB frames; its loss counts only where the
+    # two frames agree and nothing passed through (the still background), target their linear blend.
+    # Off: it holds the demo's still background half-way between RGB instants (RGB-only 25.63 -> 25.88 dB,
+    # full 25.32 -> 25.35, with quiet_junctions 25.62) but 1000 fast steps, between RGB frames, move within
+    # noise: full fast -0.02, between -0.03, demo -0.03; with quiet_junctions demo +0.18 / +0.31 / -0.07,
+    # between -0.01 / -0.07 / -0.14, fast +0.20 / +0.00; RGB-only +0.04 / +0.01 / +0.06 (README "Still frames
+    # held between the RGB instants"); an extra render every still_every steps
+    still_weight: float = 0.0  # 0: off (the term is not built)
+    still_every: int = 2
+    still_colour_tol: float = 0.015  # changed: 3 x 3 box means differ by more than this in any channel
+    still_margin_px: int = 2  # the changed and swept pixels dilated by this
+    still_spike_dilate: int = 1  # full model: pixels over spike blocks changed in the interval (dilated) are not still
     baseline: str = ""  # training-data variant: repeat | interp-linear | interp-flow | spike2img
     baseline_per_interval: int = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
     # how the full model (and the baselines) treat the synthetic frames (issue 11, engine.train.baselines):
