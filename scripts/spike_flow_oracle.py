@@ -36,6 +36,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from engine.cameras import project_points  # noqa: E402
+from engine.io.ground_truth import pose_at  # noqa: E402
 from engine.train.scene_flow import backproject_pixels  # noqa: E402
 
 
@@ -56,12 +57,7 @@ class TrueMotion:
         self._ref: dict = {}
 
     def pose(self, name: str, t: float) -> np.ndarray:
-        times, mats = self.truth["times"], self.truth[name]
-        i = int(np.clip(np.searchsorted(times, t) - 1, 0, len(times) - 2))
-        a = float(np.clip((t - times[i]) / max(times[i + 1] - times[i], 1e-12), 0.0, 1.0))
-        m = mats[i if a < 0.5 else i + 1].copy()
-        m[:3, 3] = (1 - a) * mats[i][:3, 3] + a * mats[i + 1][:3, 3]
-        return m
+        return pose_at(self.truth["times"], self.truth[name], float(t))
 
     def reference(self, T: float):
         """(world points [H*W, 3] of the RGB camera's pixels at ``T``, object id [H*W] (-1

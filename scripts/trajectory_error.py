@@ -45,6 +45,7 @@ if str(REPO) not in sys.path:
 
 from engine.cameras import project_points  # noqa: E402
 from engine.errors import CaptureError  # noqa: E402
+from engine.io.ground_truth import pose_at  # noqa: E402
 
 
 def load_object_truth(capture_root) -> dict:
@@ -72,14 +73,8 @@ def load_object_truth(capture_root) -> dict:
 
 
 def object_pose(truth: dict, name: str, t: float) -> np.ndarray:
-    """Object-to-world [4,4] at ``t``: translation interpolated linearly, rotation nearest
-    sample (1 kHz: under 1 ms apart)."""
-    times, (mats, _) = truth["times"], truth["objects"][name]
-    i = int(np.clip(np.searchsorted(times, t) - 1, 0, len(times) - 2))
-    a = float(np.clip((t - times[i]) / max(times[i + 1] - times[i], 1e-12), 0.0, 1.0))
-    m = mats[i if a < 0.5 else i + 1].copy()
-    m[:3, 3] = (1 - a) * mats[i][:3, 3] + a * mats[i + 1][:3, 3]
-    return m
+    """Object-to-world [4,4] at ``t`` (:func:`engine.io.ground_truth.pose_at`)."""
+    return pose_at(truth["times"], truth["objects"][name][0], float(t))
 
 
 def assign(positions: np.ndarray, truth: dict, t0: float, radius: float | None = None) -> tuple[np.ndarray, list]:

@@ -10,7 +10,7 @@ import pytest
 
 from engine.errors import CaptureError
 from engine.io.capture import load_capture
-from engine.io.ground_truth import points_at
+from engine.io.ground_truth import points_at, pose_at
 from engine.io.images import write_exr, write_png
 
 W, H = 8, 6
@@ -77,6 +77,21 @@ def test_depth_and_objects_load(tmp_path):
     p = points_at(truth, "ball", 0.015)
     np.testing.assert_allclose(p, [[0.015, 0, 0], [0.015, 0, 1]], atol=1e-9)
     np.testing.assert_allclose(points_at(truth, "ball", [0.0, 1.0])[:, 0, 0], [0.0, 0.04])
+
+
+def test_pose_at_interpolates_between_the_nearest_samples_and_clamps():
+    times = np.array([0.0, 0.001, 0.002])
+    mats = np.repeat(np.eye(4)[None], 3, 0)
+    mats[:, 0, 3] = [0.0, 1.0, 4.0]
+    mats[2, :3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # a quarter turn at the last sample
+    np.testing.assert_allclose(pose_at(times, mats, 0.001), mats[1])
+    np.testing.assert_allclose(pose_at(times, mats, 0.0015), 0.5 * (mats[1] + mats[2]))
+    np.testing.assert_allclose(pose_at(times, mats, -1.0), mats[0])
+    np.testing.assert_allclose(pose_at(times, mats, 9.0), mats[2])
+    many = pose_at(times, mats, [0.0005, 0.0015])
+    assert many.shape == (2, 4, 4)
+    np.testing.assert_allclose(many[:, 0, 3], [0.5, 2.5])
+    assert pose_at(times[:1], mats[:1], 0.3).shape == (4, 4)
 
 
 def test_capture_without_ground_truth_loads_as_before(tmp_path):

@@ -90,17 +90,13 @@ def load_depth(path: str | Path, intrinsics: Intrinsics | None = None) -> np.nda
     return z
 
 
-def points_at(truth: dict[str, np.ndarray], name: str, t: float | np.ndarray) -> np.ndarray:
-    """World positions of object ``name``'s surface samples at time(s) ``t``: float64 [P, 3]
-    (scalar t) or [N, P, 3]. ``truth`` is :meth:`ObjectTruth.load`'s dict. Positions are
-    linearly interpolated between the two nearest pose samples (1 kHz in the generator: the
-    chord error of a rotation is below a millimetre there); times outside are clamped."""
-    times = truth["times"]
-    mats = truth[name]
-    pts = np.concatenate([truth[f"{name}_points"].astype(np.float64),
-                          np.ones((len(truth[f"{name}_points"]), 1))], axis=1)
-    tq = np.atleast_1d(np.asarray(t, dtype=np.float64))
-    tq = np.clip(tq, times[0], times[-1])
+def pose_at(times: np.ndarray, mats: np.ndarray, t: float | np.ndarray) -> np.ndarray:
+    """Object-to-world matrices ``mats`` [T, 4, 4] sampled at ``times`` [T], at time(s) ``t``:
+    float64 [4, 4] (scalar t) or [N, 4, 4], linearly interpolated between the two nearest
+    samples (1 kHz in the generator: the chord error of a rotation is below a millimetre
+    there); times outside are clamped."""
+    times = np.asarray(times, np.float64)
+    tq = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), times[0], times[-1])
     if len(times) > 1:
         i1 = np.clip(np.searchsorted(times, tq, side="right"), 1, len(times) - 1)
     else:
@@ -108,9 +104,18 @@ def points_at(truth: dict[str, np.ndarray], name: str, t: float | np.ndarray) ->
     i0 = np.maximum(i1 - 1, 0)
     span = np.where(times[i1] > times[i0], times[i1] - times[i0], 1.0)
     w = np.clip((tq - times[i0]) / span, 0.0, 1.0)[:, None, None]
-    p0 = np.einsum("nij,pj->npi", mats[i0], pts)[..., :3]
-    p1 = np.einsum("nij,pj->npi", mats[i1], pts)[..., :3]
-    out = (1.0 - w) * p0 + w * p1
+    out = (1.0 - w) * mats[i0] + w * mats[i1]
+    return out[0] if np.ndim(t) == 0 else out
+
+
+def points_at(truth: dict[str, np.ndarray], name: str, t: float | np.ndarray) -> np.ndarray:
+    """World positions of object ``name``'s surface samples at time(s) ``t``: float64 [P, 3]
+    (scalar t) or [N, P, 3]. ``truth`` is :meth:`ObjectTruth.load`'s dict; the poses are
+    :func:`pose_at`'s."""
+    pts = np.concatenate([truth[f"{name}_points"].astype(np.float64),
+                          np.ones((len(truth[f"{name}_points"]), 1))], axis=1)
+    mats = pose_at(truth["times"], truth[name], np.atleast_1d(np.asarray(t, dtype=np.float64)))
+    out = np.einsum("nij,pj->npi", mats, pts)[..., :3]
     return out[0] if np.ndim(t) == 0 else out
 
 
