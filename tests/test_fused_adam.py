@@ -3,6 +3,7 @@ format (densification, checkpoints), and torch's own step where it cannot take o
 from __future__ import annotations
 
 import copy
+import math
 
 import pytest
 import torch
@@ -153,6 +154,35 @@ def test_one_pass_is_torch_adam_bit_for_bit_across_block_edges(monkeypatch, bloc
         assert torch.equal(a, b)
         sa, sb = o_ref.state[a], o_fus.state[b]
         assert torch.equal(sa["exp_avg"], sb["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sb["exp_avg_sq"])
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_threads_split_a_large_parameter_into_block_runs_bit_for_bit(monkeypatch, threads):
+    """PARALLEL: the (20011, 19, 3) curve-shaped parameter (1.14M floats) is updated in runs of
+    whole blocks, one per thread (numba's count, patched), the same numbers as torch's Adam
+    and as one thread; the small parameters stay on one thread."""
+    import numba
+
+    _one_pass_or_skip()
+    monkeypatch.setattr(numba, "get_num_threads", lambda: threads)
+    n, blocks = 20011 * 57, math.ceil(20011 * 57 / fused_adam.BLOCK)
+    per = math.ceil(blocks / threads) * fused_adam.BLOCK
+    assert fused_adam._thread_cuts(n) == [i * per for i in range(threads)] + [n]
+    assert fused_adam._thread_cuts(fused_adam.PARALLEL_MIN - 1) == [0, fused_adam.PARALLEL_MIN - 1]
+    runs = []
+    k = fused_adam.KERNELS.module
+    step_threads = k.step_threads
+    monkeypatch.setattr(k, "step_threads", lambda *a: (runs.append((a[0].size, a[-2].shape, a[-1])),
+                                                        step_threads(*a))[1])
+    grads = _grads(4, seed=5)
+    ref, _ = _run(torch.optim.Adam, grads)
+    fus, _ = _run(FusedAdam, grads)
+    monkeypatch.setattr(fused_adam, "PARALLEL", False)
+    one, _ = _run(FusedAdam, grads)
+    assert all(torch.equal(a, b) and torch.equal(a, c) for a, b, c in zip(ref, fus, one))
+    # the big parameter took the threaded pass at every step it had a gradient; nothing else did
+    assert runs == ([(n, (threads, fused_adam.BLOCK), per)] * len(runs) if threads > 1 else [])
+    assert len(runs) >= (3 if threads > 1 else 0)
 
 
 def test_one_pass_and_two_passes_agree_and_switch(monkeypatch):

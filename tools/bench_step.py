@@ -308,6 +308,9 @@ VARIANTS = {
     "adam-selective": {"doc": "gaussian_adam=selective: only the rows the step's renders see and the curve "
                               "columns its times read (engine.scene.selective_adam)", "hexplane_sampler": "auto",
                        "overrides": {"gaussian_adam": "selective"}},
+    "adam-serial": {"doc": "FusedAdam's one-pass update of a large parameter on one thread (fused_adam.PARALLEL="
+                           "False), as before its runs of blocks on numba's threads (same numbers)",
+                    "hexplane_sampler": "auto", "patches": {(fused_adam, "PARALLEL"): False}},
     "ssim-msssim": {"doc": "the D-SSIM term by pytorch_msssim (conv2d + autograd), as before the fused SSIM",
                     "hexplane_sampler": "auto", "patches": {(fused_ssim, "ENABLED"): False}},
     "adam-ssim-before": {"doc": "gaussian_adam=exact and pytorch_msssim's D-SSIM: the optimizer and the SSIM as "
@@ -341,6 +344,9 @@ VARIANTS = {
                         "hexplane_sampler": "auto",
                         "patches": {(spike_flow, "FUSED_INNER"): False, (losses, "HOIST_STEREO"): False,
                                     (scene_flow, "REUSE_DIS"): False, (spike_flow_pairs, "PARALLEL_PAIR"): False}},
+    "sink-off": {"doc": "every reader of the curves returns its own full [N, K, C] gradient and autograd sums "
+                        "them, as before trajectory.gradient_sink (same numbers)", "hexplane_sampler": "auto",
+                 "patches": {(trajectory, "SINK"): False}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

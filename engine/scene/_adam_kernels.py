@@ -11,7 +11,7 @@ against torch's on first use and falls back to torch when they differ
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ..numba_cache import install_cache_locator
 from ..numba_fma import fma32 as _fma32
@@ -22,8 +22,9 @@ install_cache_locator(__name__)
 
 # Serial loops from index 0 (numba then drops its negative-index handling and LLVM
 # vectorises them: 8 floats per instruction); ``error_model="numpy"``: IEEE division with no
-# zero check, which would stop the vectoriser too. ``parallel=True`` measured slower (CPU
-# time) on this 2-core machine: the work is memory-bound.
+# zero check, which would stop the vectoriser too. ``parallel=True`` on these loops measured
+# slower (CPU time) on this 2-core machine; :func:`step_threads` instead gives each of numba's
+# threads one run of whole blocks of :func:`step` (README, "Adam on numba's threads").
 
 
 @njit(cache=True, nogil=True)
@@ -89,6 +90,21 @@ def step(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, buf):
     for s in range(0, n, b):
         e = min(n, s + b)
         _step_block(p[s:e], g[s:e], m[s:e], v[s:e], w1, b2, c2, bc2s, eps, neg_step, buf[:e - s])
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def step_threads(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, bufs, per):
+    """:func:`step` on numba's threads: thread ``t`` updates elements ``[t per, (t + 1) per)``
+    (whole blocks of ``bufs.shape[1]``) with scratch ``bufs[t]``. Elementwise: the same
+    numbers as :func:`step`. numba's own pool, not Python threads: after the rasterizer's
+    parallel loops its OpenMP workers spin-wait on the other core, and a Python thread
+    competing with them measured slower than one thread (README, "Adam on numba's threads")."""
+    n = p.size
+    for t in prange(bufs.shape[0]):
+        s = t * per
+        e = min(n, s + per)
+        if s < e:
+            step(p[s:e], g[s:e], m[s:e], v[s:e], w1, b2, c2, bc2s, eps, neg_step, bufs[t])
 
 
 @njit(cache=True, nogil=True)

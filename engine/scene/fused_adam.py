@@ -40,6 +40,13 @@ ENABLED = True
 # False: the two-pass kernels with torch's sqrt between them (bench-step's "adam-twopass")
 ONE_PASS = True
 BLOCK = 16384  # one pass's block: 5 arrays x 64 KiB stay in the 512 KiB L2 (8k-32k measured alike)
+# False: a parameter's one-pass update runs on one thread (bench-step's "adam-serial"). True: a
+# large one (the curves) is cut into runs of whole blocks, one per numba thread (at most
+# MAX_THREADS; _adam_kernels.step_threads): the pass is memory bound and one core does not fill
+# the memory bus (README, "Adam on numba's threads"). Elementwise: the same numbers.
+PARALLEL = True
+PARALLEL_MIN = 1 << 18  # floats: below this, the thread hand-off costs more than it saves
+MAX_THREADS = 4
 _EXACT: bool | None = None
 _ONE_PASS_EXACT: bool | None = None
 
@@ -69,14 +76,30 @@ def _fused_update(p, grad, m, v, step: float, lr: float, beta1: float, beta2: fl
     if one_pass is None:
         one_pass = ONE_PASS and one_pass_exact()
     if one_pass:
-        buf = scratch[:min(BLOCK, pf.size)].numpy()
-        k.step(pf, gf, mf, vf, f32(1 - beta1), f32(beta2), f32(1 - beta2), f32(bias_correction2_sqrt), f32(eps),
-               f32(-step_size), buf)
+        scalars = (f32(1 - beta1), f32(beta2), f32(1 - beta2), f32(bias_correction2_sqrt), f32(eps), f32(-step_size))
+        cuts = _thread_cuts(pf.size)
+        if len(cuts) > 2:  # runs of whole blocks on numba's threads, a scratch block each
+            bufs = scratch[:(len(cuts) - 1) * BLOCK].view(len(cuts) - 1, BLOCK).numpy()
+            k.step_threads(pf, gf, mf, vf, *scalars, bufs, cuts[1])
+        else:
+            k.step(pf, gf, mf, vf, *scalars, scratch[:min(BLOCK, pf.size)].numpy())
         return
     root = scratch[:pf.size]
     k.moments(gf, mf, vf, f32(1 - beta1), f32(beta2), f32(1 - beta2), root.numpy())
     torch.sqrt(root, out=root)  # torch's (MKL's) rounding
     k.update(pf, mf, vf, root.numpy(), f32(bias_correction2_sqrt), f32(eps), f32(-step_size))
+
+
+def _thread_cuts(n: int) -> list[int]:
+    """Element offsets [0, .., n] of the runs of whole blocks the threads update (one run
+    when :data:`PARALLEL` is off or ``n`` < :data:`PARALLEL_MIN`)."""
+    blocks, threads = -(-n // BLOCK), 1
+    if PARALLEL and n >= PARALLEL_MIN:
+        import numba
+
+        threads = max(1, min(MAX_THREADS, numba.get_num_threads(), blocks))
+    per = -(-blocks // threads) * BLOCK  # whole blocks per thread, in elements
+    return sorted({min(n, i * per) for i in range(threads)} | {n})
 
 
 def exact() -> bool:
@@ -192,7 +215,7 @@ class FusedAdam(torch.optim.Adam):
             one_pass = ONE_PASS and one_pass_exact()
         need = max((p.numel() for g in self.param_groups for p in g["params"] if p.grad is not None), default=0)
         if one_pass:
-            need = min(need, BLOCK)
+            need = min(need, BLOCK) * (len(_thread_cuts(need)) - 1)  # a scratch block per thread
         scratch = getattr(self, "_scratch", None)
         if scratch is None or scratch.numel() < need:
             scratch = self._scratch = torch.empty(need, dtype=torch.float32)
@@ -213,5 +236,9 @@ def warmup() -> float:
 
     t0 = time.perf_counter()
     exact()
-    one_pass_exact()
+    if one_pass_exact():  # the threaded pass (numba's parallel compile is the slow one)
+        x = np.zeros(2 * BLOCK + 3, np.float32)
+        f = np.float32(0.5)
+        KERNELS.module.step_threads(x, x.copy(), x.copy(), x.copy(), f, f, f, f, f, f,
+                                    np.empty((2, BLOCK), np.float32), BLOCK)
     return time.perf_counter() - t0

@@ -42,6 +42,8 @@ RGB instants (``u`` = 0 or 1) both give the junction value and its gradient bit 
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 
@@ -51,7 +53,7 @@ KERNELS = LazyKernels(__package__, "_trajectory_kernels")  # the residual-square
 
 __all__ = ["num_controls", "num_knots", "segment_of", "segment_weights", "bezier_controls", "evaluate",
            "evaluate_reference", "junctions", "extrapolate_junctions", "inner_residuals", "inner_residual_sq",
-           "default_knots", "touched_columns", "clear_touched"]
+           "default_knots", "touched_columns", "clear_touched", "gradient_sink", "sunk", "zeros_then"]
 
 # "fast": :func:`evaluate` uses the column-weight form (:class:`_CurveAt`); "torch": the
 # reference slice-by-slice code (bench-step's "traj-reference" variant switches it)
@@ -122,6 +124,60 @@ def inner_residuals(params: torch.Tensor) -> torch.Tensor:
     inner = params[:, :-1].reshape(n, (k - 1) // 3, 3, c)
     return inner[:, :, 1:]
 
+# ---- the curves' gradient summed in place (issue 13) ------------------------------------------
+# A guided step reads the curves at several places: the RGB render's instant, the between-frame
+# render's, the residual term, the flow term's subset. Autograd gives each reader's backward its
+# own full [N, K, C] gradient (zeros outside the few columns it read) and sums them in full
+# tensors: ~1.2 ms per full gradient and ~1.8 ms per full add of the position curves at 26k
+# Gaussians (torch profiler, guided demo steps). Inside :func:`gradient_sink` (the trainer's
+# ``backward()``) the first reader of a leaf still writes the full gradient and sets it as the
+# leaf's ``.grad`` (what autograd's accumulation would do with it); every later reader adds its
+# columns into that ``.grad`` in the order autograd runs them, so each entry is the same sum,
+# with the same rounding, as autograd's (an entry no later reader touched keeps its -0.0 where
+# autograd's ``x + 0`` would make it +0.0; Adam's update is the same for either zero).
+
+# False: every reader's backward returns its full gradient to autograd (bench-step's "sink-off")
+SINK = True
+_SINK: dict | None = None  # id(leaf) -> leaf whose .grad the running backward created
+
+
+@contextmanager
+def gradient_sink():
+    """Sum the curves' gradients in place during the ``backward()`` run inside this block
+    (:func:`sunk`). Only around a plain ``backward()``: ``torch.autograd.grad`` must not run in
+    it (it returns gradients instead of accumulating them)."""
+    global _SINK
+    prev, _SINK = _SINK, ({} if SINK else None)
+    try:
+        yield
+    finally:
+        _SINK = prev
+
+
+def sunk(params, write_full, add_into):
+    """What a reader's backward returns for the curves ``params``: ``write_full()`` (a fresh
+    full gradient) outside :func:`gradient_sink` or when ``params`` is not a CPU leaf whose
+    ``.grad`` was None when this backward began; otherwise None, after setting ``.grad`` to
+    ``write_full()`` (first reader) or calling ``add_into(params.grad)`` (later readers)."""
+    state = _SINK
+    if state is None or params is None or not params.is_leaf or params.device.type != "cpu":
+        return write_full()
+    if id(params) in state:
+        add_into(params.grad)
+        return None
+    if params.grad is not None:  # a gradient from before this backward: autograd sums as it would
+        return write_full()
+    params.grad = write_full()
+    state[id(params)] = params
+    return None
+
+
+def zeros_then(kernel, shape, *args) -> torch.Tensor:
+    """A zero tensor of ``shape`` (``args[0]``'s dtype) after ``kernel(*args, it)`` accumulated into it."""
+    out = np.zeros(shape, args[0].dtype)
+    kernel(*args, out)
+    return torch.from_numpy(out)
+
 
 class _ResidualSq(torch.autograd.Function):
     """``(inner_residuals(params) ** 2).sum(-1)`` [N, F - 1, 2] in one numba pass, and a
@@ -135,6 +191,7 @@ class _ResidualSq(torch.autograd.Function):
         out = np.empty((p.shape[0], (p.shape[1] - 1) // 3, 2), p.dtype)
         ctx.nonzero = bool(k.residual_sq(p, out))
         ctx.save_for_backward(params)
+        ctx.leaf = params if params.is_leaf else None  # gradient_sink's key
         return torch.from_numpy(out)
 
     @staticmethod
@@ -146,11 +203,14 @@ class _ResidualSq(torch.autograd.Function):
             # grad * (2 * 0), is all zeros, and None says so without a full tensor that
             # autograd would then add to the curves' gradient (x + 0 == x: same numbers)
             return None
-        p = params.detach().numpy()
-        out = np.empty_like(p)
-        # what autograd computes for ``d ** 2`` (pow's backward: grad * (2 * d)), bit for bit
-        KERNELS.module.residual_sq_backward(p, grad.detach().to(params.dtype).numpy(), out)
-        return torch.from_numpy(out)
+        p, gr = params.detach().numpy(), grad.detach().to(params.dtype).numpy()
+
+        def full():
+            out = np.empty_like(p)
+            # what autograd computes for ``d ** 2`` (pow's backward: grad * (2 * d)), bit for bit
+            KERNELS.module.residual_sq_backward(p, gr, out)
+            return torch.from_numpy(out)
+        return sunk(ctx.leaf, full, lambda g: KERNELS.module.residual_sq_backward_add(p, gr, g.numpy()))
 
 
 def _all_finite(x: torch.Tensor) -> bool:
@@ -247,6 +307,7 @@ class _CurveAt(torch.autograd.Function):
     @staticmethod
     def forward(ctx, params, cols, weights):
         ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
+        ctx.leaf = params if params.is_leaf else None  # gradient_sink's key
         ctx.fused = _fused_curves(params)
         if ctx.fused:  # one pass over the rows (_trajectory_kernels.curve_at), same numbers
             out = params.new_empty(params.shape[0], params.shape[2])
@@ -263,14 +324,21 @@ class _CurveAt(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         if ctx.fused and grad.dtype in _NP_DTYPE and grad.device.type == "cpu":
-            g = torch.empty(ctx.shape, dtype=grad.dtype)
-            KERNELS.module.curve_at_backward(grad.detach().contiguous().numpy(), np.asarray(ctx.cols, np.int64),
-                                             np.asarray(ctx.weights, _NP_DTYPE[grad.dtype]), g.numpy())
-            return g, None, None
-        g = grad.new_zeros(ctx.shape)
-        for c, w in zip(ctx.cols, ctx.weights):
-            torch.mul(grad, w, out=g[:, c])
-        return g, None, None
+            gr, cols = grad.detach().contiguous().numpy(), np.asarray(ctx.cols, np.int64)
+            w = np.asarray(ctx.weights, _NP_DTYPE[grad.dtype])
+
+            def full():
+                g = torch.empty(ctx.shape, dtype=grad.dtype)
+                KERNELS.module.curve_at_backward(gr, cols, w, g.numpy())
+                return g
+            return sunk(ctx.leaf, full, lambda g: KERNELS.module.curve_at_backward_add(gr, cols, w, g.numpy())), \
+                None, None
+
+        def columns(g, add: bool):  # the same by torch ops: written into a zero gradient, or added
+            for c, w in zip(ctx.cols, ctx.weights):
+                g[:, c].add_(torch.mul(grad, w)) if add else torch.mul(grad, w, out=g[:, c])
+            return g
+        return sunk(ctx.leaf, lambda: columns(grad.new_zeros(ctx.shape), False), lambda g: columns(g, True)), None, None
 
 
 _NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}
@@ -346,7 +414,8 @@ def default_knots(frame_times) -> list[float]:
 
 def warmup() -> float:
     """Compile (first run on a machine) or load the residual-square and curve kernels now,
-    in the layouts training passes them (float32; the gradient of a ``mean``); seconds taken."""
+    in the layouts training passes them (float32, int64 rows; the gradient of a ``mean``);
+    seconds taken."""
     import time
 
     t0 = time.perf_counter()
@@ -354,4 +423,11 @@ def warmup() -> float:
         p = torch.zeros(3, num_controls(3), 3, requires_grad=True)
         inner_residual_sq(p).mean().backward()
         evaluate(p, [0.0, 0.5, 1.0], 0.25).sum().backward()  # the curves' forward / backward kernels
+        k, x = KERNELS.module, p.detach().numpy() + np.float32(0.5)
+        g, idx, cols, w = np.ones((3, 3), np.float32), np.arange(3), np.arange(3), np.ones(3, np.float32)
+        k.residual_sq_backward_add(x, np.ones((3, 2, 2), np.float32), x)  # gradient_sink's in-place sums
+        k.curve_at_backward_add(g, cols, w, x)
+        k.inner_at(x, g, idx, cols, w, g.copy())  # the spike-view flow term's subset (spike_flow._InnerAt)
+        k.inner_at_backward(g, idx, cols, w, x)
+        k.inner_at_backward_add(g, idx, cols, w, x)
     return time.perf_counter() - t0

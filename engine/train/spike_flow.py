@@ -62,16 +62,15 @@ __all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid
 # ------------------------------------------------------------------------------ functional
 class _InnerAt(torch.autograd.Function):
     """``base + sum_j w_j params[idx, c_j]`` [M, C] (the curves of rows ``idx`` at one instant,
-    ``traj.segment_weights``); the backward writes ``w_j * grad`` into rows ``idx`` of the inner
-    columns (``c % 3 != 0``) of one zero [N, K, C] gradient: no [M, K, C] gather, mask or
-    scatter (issue 13; the same numbers as the gather + ``torch.where`` + ``traj.evaluate``
-    form, bit for bit, ``tests/test_spike_flow.py``). On the CPU forward and backward are a
-    numba pair (``_trajectory_kernels.inner_at``): no per-column gather, multiply and
-    ``index_add_``, the same numbers (``tests/test_step_cost.py``)."""
+    ``traj.segment_weights``); the backward adds ``w_j * grad`` into rows ``idx`` of the inner
+    columns (``c % 3 != 0``) of a zero [N, K, C] gradient or, in ``traj.gradient_sink``, the leaf's
+    ``.grad`` (issue 13; the same numbers as gather + ``torch.where`` + ``traj.evaluate``,
+    ``tests/test_spike_flow.py``). On the CPU both passes are numba (``_trajectory_kernels.inner_at``),
+    the same numbers as per-column torch ops (``tests/test_step_cost.py``)."""
 
     @staticmethod
     def forward(ctx, params, base, idx, cols, weights):
-        ctx.shape, ctx.cols, ctx.weights = params.shape, cols, weights
+        ctx.shape, ctx.cols, ctx.weights, ctx.leaf = params.shape, cols, weights, params if params.is_leaf else None
         ctx.save_for_backward(idx)
         ctx.fused = _fused_inner(params, base, idx)
         if ctx.fused:  # one pass over the subset's rows (_trajectory_kernels.inner_at), same numbers
@@ -90,16 +89,17 @@ class _InnerAt(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         (idx,) = ctx.saved_tensors
-        g = grad.new_zeros(ctx.shape)
-        if ctx.fused and grad.dtype == g.dtype and grad.device.type == "cpu":
-            traj.KERNELS.module.inner_at_backward(grad.detach().contiguous().numpy(), idx.numpy(),
-                                                  np.asarray(ctx.cols, np.int64),
-                                                  np.asarray(ctx.weights, _NP[grad.dtype]), g.numpy())
-            return g, None, None, None, None
-        for c, w in zip(ctx.cols, ctx.weights):
-            if c % 3:
-                g[:, c].index_add_(0, idx, torch.mul(grad, w))
-        return g, None, None, None, None
+        if ctx.fused and grad.dtype in _NP and grad.device.type == "cpu":  # in place: traj.gradient_sink
+            a = (grad.detach().contiguous().numpy(), idx.numpy(), np.asarray(ctx.cols, np.int64),
+                 np.asarray(ctx.weights, _NP[grad.dtype]))
+            return traj.sunk(ctx.leaf, lambda: traj.zeros_then(traj.KERNELS.module.inner_at_backward, ctx.shape, *a),
+                             lambda g: traj.KERNELS.module.inner_at_backward_add(*a, g.numpy())), None, None, None, None
+        def add(g):  # torch ops; each entry gets ``0 + grad * w``, as a zero gradient's index_add_ gives it
+            for c, w in zip(ctx.cols, ctx.weights):
+                if c % 3:
+                    g[:, c].index_add_(0, idx, torch.mul(grad, w).add_(0.0))
+            return g
+        return traj.sunk(ctx.leaf, lambda: add(grad.new_zeros(ctx.shape)), add), None, None, None, None
 
 
 _NP = {torch.float32: np.float32, torch.float64: np.float64}

@@ -45,7 +45,7 @@ from ..geometry.init_points import initial_points
 from ..scene.deformation import make_field
 from ..scene.gaussians import GaussianModel
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
-from ..scene.trajectory import extrapolate_junctions
+from ..scene.trajectory import extrapolate_junctions, gradient_sink
 from .along_ray import along_ray_factory
 from .between_rigidity import between_rigidity_factory
 from .culling import FrustumCuller
@@ -410,10 +410,10 @@ class Trainer:
                 continue
             losses[term.name] = float(val.detach())
             total = total + term.weight * val
-        g.optimizer.zero_grad(set_to_none=True)
-        if self.deform_opt is not None:
-            self.deform_opt.zero_grad(set_to_none=True)
-        total.backward()
+        for opt in filter(None, (g.optimizer, self.deform_opt)):
+            opt.zero_grad(set_to_none=True)
+        with gradient_sink():  # the curves' readers sum their gradients in place (issue 13)
+            total.backward()
 
         # densification statistics and schedule
         dense = self.schedule.in_densify_window(step, cfg)
