@@ -8,8 +8,8 @@
 fast preset for ``--steps`` steps; from step ``--from`` on, each step draws the switch on or
 off at random (seeded) and the wall and CPU time of its ``backward()`` and of the Gaussians'
 optimizer step are recorded per side. ``bench-step --variants A,B`` runs its variants one after
-the other, and on this machine whichever ran first was up to ~10 % slower; drawing per step
-puts both sides under the same load and model state.
+the other, and on this shared machine consecutive runs differ by up to ~10 %, more than a
+change of a few per cent; drawing per step puts both sides under the same load and model state.
 
 ``--fixed on|off`` instead keeps the switch at one side for the whole run and prints a hash of
 every Gaussian parameter at the end: two runs with the same hash trained bit for bit alike.
