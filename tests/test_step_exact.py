@@ -54,30 +54,42 @@ def test_rgb_training_is_bit_for_bit_the_reference(capture, monkeypatch):
 
 
 @pytest.mark.slow  # two demo trainers, ~1 min on the loaded 2-core machine
-@pytest.mark.parametrize("rgb_only", [True, False])
-def test_default_training_is_bit_for_bit_before_the_flow_and_curve_kernels(rgb_only, demo_capture):
+@pytest.mark.parametrize("before,rgb_only", [("step-before", True), ("step-before", False), ("sink-off", False)])
+def test_default_training_is_bit_for_bit_before_the_flow_and_curve_kernels(before, rgb_only, demo_capture,
+                                                                           monkeypatch):
     """The fast preset's own schedule on the demo (flow carry and births at the admitted
-    instants; with the spike branch, curves between knots): the engine as it is and
-    bench-step's ``step-before`` variant (torch's Lucas-Kanade flow, frames from disk, torch
-    curve column ops) keep the same parameters after every step."""
+    instants; with the spike branch, curves between knots, every reader of a guided step): the
+    engine as it is and bench-step's ``before`` variant keep the same parameters after every
+    step. ``step-before``: torch's Lucas-Kanade flow, frames from disk, torch curve column ops;
+    ``sink-off``: the curves' gradients summed by autograd, not in place (and the engine as it
+    is did add in place)."""
+    from engine.scene import trajectory
     from engine.train.budget import warm_up_runtime
     from tools.bench_step import variant
 
     warm_up_runtime("cpu")
+    added = []  # the curves' backward kernels that added into a gradient already there
+    k = trajectory.KERNELS.module
+    for name, adds in (("curve_at_backward", lambda a: a[-1]), ("residual_sq_backward_add", lambda a: True)):
+        kernel = getattr(k, name)
+        monkeypatch.setattr(k, name, lambda *a, _k=kernel, _a=adds: (_a(a) and added.append(1), _k(*a))[1])
     cap = load_capture(demo_capture)
     steps = 40
     trainers = {}
-    for v in ("step-before", "current"):
+    for v in (before, "current"):
         with variant(v):
             tr = Trainer(cap, get_preset("fast", {"iterations": steps}), device="cpu", rgb_only=rgb_only)
             tr.init_model()
         trainers[v] = tr
     for step in range(steps):
         for v, tr in trainers.items():
+            n = len(added)
             with variant(v):
                 tr.step(step)
+            assert v != "sink-off" or len(added) == n  # sink-off: nothing added in place
         a, b = (tr.model.gaussians for tr in trainers.values())
         assert a.num_gaussians == b.num_gaussians
         for name in a.param_names:
             assert torch.equal(getattr(a, name), getattr(b, name)), (step, name)
+    assert added  # later readers of a step (between-frame render, residual term, cover render) added in place
     assert trainers["current"].carry_info and trainers["current"].birth_info  # admissions ran the flow

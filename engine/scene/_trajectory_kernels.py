@@ -104,31 +104,22 @@ def curve_at(params, cols, weights, out):
 
 
 @njit(cache=True, nogil=True)
-def curve_at_backward(grad, cols, weights, out):
-    """``out`` [N, K, C] (every entry written): ``grad * weights[j]`` in column ``cols[j]``,
-    zero elsewhere (the columns are distinct)."""
+def curve_at_backward(grad, cols, weights, out, add):
+    """Without ``add``: ``out`` [N, K, C] = ``grad * weights[j]`` in column ``cols[j]``, zero
+    elsewhere (every entry written; the columns are distinct). With ``add``: that gradient
+    added into ``out``, columns ``cols`` only (autograd's sum of the two; trajectory.sunk)."""
     n, K, C = out.shape
     m = cols.size
     for r in range(n):
-        for k in range(K):
-            for c in range(C):
-                out[r, k, c] = 0.0
+        if not add:
+            for k in range(K):
+                for c in range(C):
+                    out[r, k, c] = 0.0
         for j in range(m):
             col, w = cols[j], weights[j]
             for c in range(C):
-                out[r, col, c] = grad[r, c] * w
-
-
-@njit(cache=True, nogil=True)
-def curve_at_backward_add(grad, cols, weights, out):
-    """``out += curve_at_backward``'s gradient, in columns ``cols`` only (trajectory.sunk)."""
-    n, C = grad.shape
-    m = cols.size
-    for r in range(n):
-        for j in range(m):
-            col, w = cols[j], weights[j]
-            for c in range(C):
-                out[r, col, c] = out[r, col, c] + grad[r, c] * w
+                x = grad[r, c] * w
+                out[r, col, c] = out[r, col, c] + x if add else x
 
 
 # ---- a row subset of the curves at one instant, inner columns only: spike_flow._InnerAt -------
@@ -153,23 +144,11 @@ def inner_at(params, base, idx, cols, weights, out):
 
 @njit(cache=True, nogil=True)
 def inner_at_backward(grad, idx, cols, weights, out):
-    """``out[idx[m], cols[j], c] += grad[m, c] * weights[j]`` for the inner columns
-    (``cols[j] % 3 != 0``), columns in the order given, rows in order (``out`` zero-filled)."""
-    M, C = grad.shape
-    for j in range(cols.size):
-        col, w = cols[j], weights[j]
-        if col % 3 == 0:
-            continue
-        for m in range(M):
-            r = idx[m]
-            for c in range(C):
-                out[r, col, c] = out[r, col, c] + grad[m, c] * w
-
-
-@njit(cache=True, nogil=True)
-def inner_at_backward_add(grad, idx, cols, weights, out):
-    """``out += inner_at_backward``'s gradient (``idx`` distinct: each entry gets one
-    ``0 + grad * w``, as that zero-filled gradient holds it; trajectory.sunk)."""
+    """``out[idx[m], cols[j], c] += 0 + grad[m, c] * weights[j]`` for the inner columns
+    (``cols[j] % 3 != 0``), columns in the order given, rows in order. Into a zero-filled
+    ``out`` this is the torch ``index_add_`` it replaces; into a gradient already there (``idx``
+    distinct, trajectory.sunk) it is autograd's sum of that and the zero-filled one: the
+    ``0 +`` turns a -0 product into the +0 the zero-filled gradient would hold."""
     M, C = grad.shape
     for j in range(cols.size):
         col, w = cols[j], weights[j]

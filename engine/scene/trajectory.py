@@ -329,9 +329,9 @@ class _CurveAt(torch.autograd.Function):
 
             def full():
                 g = torch.empty(ctx.shape, dtype=grad.dtype)
-                KERNELS.module.curve_at_backward(gr, cols, w, g.numpy())
+                KERNELS.module.curve_at_backward(gr, cols, w, g.numpy(), False)
                 return g
-            return sunk(ctx.leaf, full, lambda g: KERNELS.module.curve_at_backward_add(gr, cols, w, g.numpy())), \
+            return sunk(ctx.leaf, full, lambda g: KERNELS.module.curve_at_backward(gr, cols, w, g.numpy(), True)), \
                 None, None
 
         def columns(g, add: bool):  # the same by torch ops: written into a zero gradient, or added
@@ -426,8 +426,7 @@ def warmup() -> float:
         k, x = KERNELS.module, p.detach().numpy() + np.float32(0.5)
         g, idx, cols, w = np.ones((3, 3), np.float32), np.arange(3), np.arange(3), np.ones(3, np.float32)
         k.residual_sq_backward_add(x, np.ones((3, 2, 2), np.float32), x)  # gradient_sink's in-place sums
-        k.curve_at_backward_add(g, cols, w, x)
+        k.curve_at_backward(g, cols, w, x, True)
         k.inner_at(x, g, idx, cols, w, g.copy())  # the spike-view flow term's subset (spike_flow._InnerAt)
         k.inner_at_backward(g, idx, cols, w, x)
-        k.inner_at_backward_add(g, idx, cols, w, x)
     return time.perf_counter() - t0

@@ -93,7 +93,7 @@ class _InnerAt(torch.autograd.Function):
             a = (grad.detach().contiguous().numpy(), idx.numpy(), np.asarray(ctx.cols, np.int64),
                  np.asarray(ctx.weights, _NP[grad.dtype]))
             return traj.sunk(ctx.leaf, lambda: traj.zeros_then(traj.KERNELS.module.inner_at_backward, ctx.shape, *a),
-                             lambda g: traj.KERNELS.module.inner_at_backward_add(*a, g.numpy())), None, None, None, None
+                             lambda g: traj.KERNELS.module.inner_at_backward(*a, g.numpy())), None, None, None, None
         def add(g):  # torch ops; each entry gets ``0 + grad * w``, as a zero gradient's index_add_ gives it
             for c, w in zip(ctx.cols, ctx.weights):
                 if c % 3:
