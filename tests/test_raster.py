@@ -390,6 +390,30 @@ def test_offscreen_gaussians_culled_but_edge_ones_kept():
 
 # ------------------------------------------------------------------- backend selection
 
+@pytest.mark.parametrize("built", [False, True])
+def test_gsplat_without_its_cuda_extension_falls_back(monkeypatch, built):
+    """gsplat >= 1.0 builds its CUDA code on first use and, with no CUDA toolkit, leaves its
+    extension None: "available" must mean the extension loaded, or training would crash at
+    the first render instead of using the CPU path. A stand-in gsplat package (never the
+    real one: it would try to build)."""
+    import types
+
+    pkg, cuda_pkg, backend = (types.ModuleType(n) for n in ("gsplat", "gsplat.cuda", "gsplat.cuda._backend"))
+    backend._C = object() if built else None
+    pkg.cuda, cuda_pkg._backend = cuda_pkg, backend
+    for name, mod in (("gsplat", pkg), ("gsplat.cuda", cuda_pkg), ("gsplat.cuda._backend", backend)):
+        monkeypatch.setitem(sys.modules, name, mod)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(gsplat_backend, "_gsplat", None)
+    monkeypatch.setattr(gsplat_backend, "_error", None)
+    assert gsplat_backend.available() is built
+    if built:
+        assert resolve_backend("auto", torch.device("cuda")) == "gsplat"
+    else:
+        assert "nvcc" in gsplat_backend.unavailable_reason()
+        assert resolve_backend("auto", torch.device("cuda")) == "torch"  # the path that runs anywhere
+
+
 def test_gsplat_never_imported_without_cuda():
     if torch.cuda.is_available():
         pytest.skip("CUDA present")

@@ -157,15 +157,15 @@ def test_cancel_and_resume_after_a_re_plan_equals_an_uninterrupted_run(tiny_capt
     monkeypatch.setattr(trainer_mod.Trainer, "step", replanning_step)
     ov = {"iterations": 40, "static_fraction": 0.25, "densify_from": 0.1, "densify_every": 10, "init": "ply"}
     full = tmp_path / "full"
-    s = train(tiny_capture, full, overrides=ov, seed=3)
+    s = train(tiny_capture, full, overrides=ov, seed=3, device="cpu")
     assert s["step"] == s["total_steps"] == 55
     part = tmp_path / "part"
     cancel = threading.Event()
-    s1 = train(tiny_capture, part, overrides=ov, seed=3, cancel=cancel,
+    s1 = train(tiny_capture, part, overrides=ov, seed=3, device="cpu", cancel=cancel,
                progress=lambda d: d["step"] == 23 and cancel.set())
     assert s1["status"] == "cancelled" and s1["step"] == 23
     assert load_checkpoint(part)["schedule"]["segments"][1] == [12, 12.0, 28 / 43]
-    s2 = train(tiny_capture, part, overrides=ov, seed=3)
+    s2 = train(tiny_capture, part, overrides=ov, seed=3, device="cpu")
     assert s2["resumed_from"] == 23 and s2["step"] == 55
     a, b = load_checkpoint(full), load_checkpoint(part)
     assert a["schedule"] == b["schedule"]

@@ -208,8 +208,9 @@ def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_
     enc = scene.model.deformation.fine_encoder
     assert isinstance(enc, SpikeFineEncoder) and enc.source() is not None
     import torch as _t
-    saved = _t.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["model"]["deformation"]["state_dict"]
-    assert _t.equal(enc.net.out.weight, saved["fine_encoder.net.out.weight"])  # trained weights, not a fresh init
+    saved = _t.load(tmp_path / "run" / "checkpoint.pt", map_location="cpu",
+                    weights_only=False)["model"]["deformation"]["state_dict"]
+    assert _t.equal(enc.net.out.weight.cpu(), saved["fine_encoder.net.out.weight"])  # trained weights, not a fresh init
 
 
 @needs_trainer_integration

@@ -21,6 +21,7 @@ COMMANDS = {
     "bench-decode": "bench_decode",
     "import-graph": "import_graph",
     "compact-steps": "compact_steps",
+    "gpu-check": "gpu_check",
 }
 
 

@@ -59,9 +59,26 @@ CATEGORIES = ("raster_fwd", "raster_bwd", "field_fwd", "fine_fwd", "field_bwd", 
 CLOCKS = ("wall", "cpu")
 
 
+_SYNC_CUDA = False  # --device cuda: wait for the GPU at every timer edge, so that a stage is
+# charged its kernels rather than their launches (costs a little speed; the step total is exact)
+
+
 def _now() -> np.ndarray:
     """(wall seconds, this process's CPU seconds over all its threads)."""
+    if _SYNC_CUDA:
+        torch.cuda.synchronize()
     return np.array((time.perf_counter(), time.process_time()))
+
+
+def _gsplat_functions() -> list:
+    """gsplat's autograd functions (CUDA runs): their backward is ``raster_bwd``."""
+    import sys
+
+    wrapper = sys.modules.get("gsplat.cuda._wrapper")  # loaded by the backend, never imported here
+    if wrapper is None:
+        return []
+    return [c for c in vars(wrapper).values()
+            if isinstance(c, type) and issubclass(c, torch.autograd.Function) and "backward" in vars(c)]
 
 
 class StepProfiler:
@@ -146,7 +163,7 @@ class StepProfiler:
 
         self._wrap(scene_model, "rasterization", "raster_fwd")  # Model4D.render's name for it
         for cls in (raster_cpu._RasterizeFused, raster_cpu._RasterizeToPixels, raster_cpu._Project,
-                    raster_cpu._ShCombine):
+                    raster_cpu._ShCombine, *_gsplat_functions()):
             self._wrap(cls, "backward", "raster_bwd", static=True)
         for cls in (fd.FineDeformation, fd.SpikeTextureEncoder, fd.SpikeFineEncoder):
             self._wrap(cls, "forward", "fine_fwd")
@@ -242,6 +259,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--variants", default="current",
                         help="comma-separated code paths profiled in this one process, runs interleaved: "
                              + ", ".join(f"{k} ({v['doc']})" for k, v in VARIANTS.items()) + " (default current)")
+    parser.add_argument("--device", default="cpu",
+                        help="cpu (default) or cuda: on a GPU the rasterizer is gsplat and every stage "
+                             "edge waits for the GPU")
 
 
 # Issue 13's speed-ups that bench-step can switch off, to measure before / after in one
@@ -371,10 +391,10 @@ def variant(name: str):
 
 
 def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only: bool,
-                 prof: "StepProfiler") -> int:
+                 prof: "StepProfiler", device: str = "cpu") -> int:
     """One profiled run (RGB only or guided) into ``prof``; returns its final Gaussian count."""
     cfg = get_preset(preset, {**(overrides or {}), "iterations": int(steps)})
-    tr = Trainer(cap, cfg, device="cpu", rgb_only=rgb_only)
+    tr = Trainer(cap, cfg, device=device, rgb_only=rgb_only)
     tr.init_model()
     deform = "rgb_deform" if rgb_only else "guided_deform"
     with prof:
@@ -392,25 +412,35 @@ def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only:
 
 
 def compare_runs(capture, steps: int, preset: str = "fast", overrides: dict | None = None,
-                 spike: bool = True, variants=("current",)) -> tuple[dict, dict]:
+                 spike: bool = True, variants=("current",), device: str = "cpu") -> tuple[dict, dict]:
     """Profile an RGB-only run (and, with ``spike``, a guided run) of ``steps`` steps for
     each code path of ``variants`` (:data:`VARIANTS`), interleaved: RGB runs of every
     variant, then guided runs. Returns ({variant: StepProfiler}, {variant: Gaussian counts})."""
     cap = load_capture(capture) if not hasattr(capture, "frames") else capture
-    warm_up_runtime("cpu")
+    global _SYNC_CUDA
+    on_cpu = torch.device(device).type == "cpu"
+    warm_up_runtime(device)
     profs = {v: StepProfiler() for v in variants}
     counts: dict = {v: {} for v in variants}
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # as engine.train.train does on the CPU
+    if on_cpu:
+        torch.set_num_threads(1)  # as engine.train.train does on the CPU
+    else:  # the first gsplat call loads (or builds) its extension: not a step's time
+        from engine.raster import gsplat_backend
+
+        if not gsplat_backend.available():
+            raise SystemExit("bench-step --device cuda: gsplat unusable: " + gsplat_backend.unavailable_reason())
+    _SYNC_CUDA = torch.device(device).type == "cuda"
     try:
         for rgb_only in ((True, False) if spike else (True,)):
             for v in variants:
                 with variant(v):
                     n = _profile_run(cap, steps, preset, {**(overrides or {}), **VARIANTS[v].get("overrides", {})},
-                                     rgb_only, profs[v])
+                                     rgb_only, profs[v], device)
                 counts[v]["rgb_deform" if rgb_only else "guided_deform"] = n
     finally:
         torch.set_num_threads(threads)
+        _SYNC_CUDA = False
     return profs, counts
 
 
@@ -451,7 +481,7 @@ def main(args) -> int:
     load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     t0 = time.perf_counter()
     profs, counts = compare_runs(args.capture, args.steps, args.preset, parse_overrides(args.set),
-                                 variants=variants)
+                                 variants=variants, device=args.device)
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     for v in variants:
         prof = profs[v]

@@ -2,7 +2,8 @@
 
 gsplat is imported only when ``torch.cuda.is_available()``: on a machine with nvcc but no
 GPU, importing gsplat's CUDA backend tries to compile and fails (ImportError / OSError),
-so the import is lazy, guarded and its failure remembered.
+so the import is lazy, guarded and its failure remembered. Its CUDA extension is loaded
+(built on first use) at the same time, so that a GPU box without nvcc falls back too.
 """
 from __future__ import annotations
 
@@ -20,10 +21,24 @@ def _load():
         else:
             try:
                 import gsplat  # lazy: optional, CUDA only
+
+                _require_extension()
                 _gsplat = gsplat
-            except (ImportError, OSError, RuntimeError) as exc:
+            except (ImportError, OSError, RuntimeError, AttributeError) as exc:
                 _error = exc
     return _gsplat
+
+
+def _require_extension() -> None:
+    """gsplat >= 1.0 builds its CUDA extension on first use (JIT, minutes, needs nvcc) and,
+    with no CUDA toolkit, only prints a warning and leaves it ``None``: every later call
+    would then fail inside training. Load it here, once, so that "available" means usable
+    and a missing toolkit becomes a clean fallback to the CPU path."""
+    from gsplat.cuda import _backend  # lazy: this import is the (cached) build
+
+    if getattr(_backend, "_C", None) is None:
+        raise RuntimeError("gsplat is installed but its CUDA extension is not built and cannot "
+                           "be built here (no CUDA toolkit / nvcc found)")
 
 
 def available() -> bool:
