@@ -16,6 +16,7 @@ so tests never touch the real ``~/.config/blender``.
 from __future__ import annotations
 
 import atexit
+import importlib.util
 import json
 import os
 import shutil
@@ -24,11 +25,17 @@ import sys
 import tempfile
 from pathlib import Path
 
+import pytest
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 REPO_MODULE = "bt4d_test"
 ADDON_MODULE = f"bl_ext.{REPO_MODULE}.bullettime4d"
 # what a packaged extension needs (the rest of the checkout is development files)
 EXTENSION_FILES = ("blender_manifest.toml", "__init__.py", "bt4d_addon", "operators", "engine")
+
+# bpy 5.0.1 is built for Python 3.11 only: elsewhere (a GPU box's 3.12) its tests skip
+HAS_BPY = importlib.util.find_spec("bpy") is not None
+NEEDS_BPY = pytest.mark.skipif(not HAS_BPY, reason="needs the bpy module (Blender 5.0 as a module, Python 3.11)")
 
 _USER_DIR = None
 

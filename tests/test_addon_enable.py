@@ -13,7 +13,7 @@ import zipfile
 
 import blender_util
 import pytest
-from blender_util import REPO_ROOT
+from blender_util import NEEDS_BPY, REPO_ROOT
 
 
 def _manifest() -> dict:
@@ -34,6 +34,7 @@ def test_manifest_fields():
         assert pattern in excluded
 
 
+@NEEDS_BPY
 def test_manifest_passes_blenders_validation():
     sys.path.insert(0, str(REPO_ROOT / "scripts"))
     try:
@@ -59,6 +60,7 @@ def built_zip(tmp_path_factory):
     return zips[0]
 
 
+@NEEDS_BPY
 def test_zip_holds_the_extension_and_nothing_else(built_zip):
     names = zipfile.ZipFile(built_zip).namelist()
     for required in ("blender_manifest.toml", "__init__.py", "bt4d_addon/__init__.py", "bt4d_addon/panel.py",
@@ -114,6 +116,7 @@ ENABLE_SCRIPT = textwrap.dedent("""
 """)
 
 
+@NEEDS_BPY
 @pytest.mark.parametrize("copy", [False, True], ids=["symlink", "copy"])
 def test_enable_and_disable_through_extension_repository(demo_capture, copy):
     res, log = blender_util.run_python(ENABLE_SCRIPT.replace("COPY", str(copy)))
@@ -146,6 +149,7 @@ INSTALL_ZIP_SCRIPT = textwrap.dedent("""
 """)
 
 
+@NEEDS_BPY
 def test_built_zip_installs_from_disk_and_imports_its_demo(built_zip):
     """The zip goes through Blender's own "Install from Disk" and its bundled demo imports."""
     res, log = blender_util.run_python(INSTALL_ZIP_SCRIPT.replace("ZIP", repr(str(built_zip))))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from blender_util import NEEDS_BPY
 
 from engine.colour import luminance, srgb_to_linear
 from engine.io.capture import load_capture
@@ -28,6 +29,7 @@ def tiny_capture(tmp_path_factory):
 
 
 @pytest.mark.slow
+@NEEDS_BPY
 def test_generated_capture_loads_with_the_expected_rig(tiny_capture):
     cap = load_capture(tiny_capture)
     assert set(cap.cameras) == {"rgb0", "rgb1", "spike0", "eval0"}
@@ -56,6 +58,7 @@ def test_generated_capture_loads_with_the_expected_rig(tiny_capture):
 
 
 @pytest.mark.slow
+@NEEDS_BPY
 def test_spikes_agree_with_the_co_located_rgb_frame(tiny_capture):
     """Spike counts over a window ~ linear luminance of rgb0 / 3 (white fires every 3rd frame)."""
     cap = load_capture(tiny_capture)
@@ -71,6 +74,7 @@ def test_spikes_agree_with_the_co_located_rgb_frame(tiny_capture):
 
 
 @pytest.mark.slow
+@NEEDS_BPY
 def test_rgb_frames_are_plain_srgb_pngs(tiny_capture):
     cap = load_capture(tiny_capture)
     f = cap.frames[0]
@@ -99,6 +103,7 @@ def test_demo_capture_is_small_and_moving(demo_capture):
 
 
 @pytest.mark.slow
+@NEEDS_BPY
 def test_object_ground_truth_follows_the_motion(tiny_capture):
     """Every generated capture carries ground_truth.objects: poses at the light rate."""
     sys.path.insert(0, str(REPO_ROOT / "scripts"))
@@ -115,6 +120,7 @@ def test_object_ground_truth_follows_the_motion(tiny_capture):
     assert all(f.depth_file_path is None for f in cap.frames)  # depth is opt-in outside --preset novel
 
 
+@NEEDS_BPY
 def test_bad_eval_angles_are_refused(tmp_path):
     cmd = [sys.executable, str(REPO_ROOT / "scripts" / "make_capture.py"), "--out", str(tmp_path / "x"),
            "--eval-angles", "side10,left20"]

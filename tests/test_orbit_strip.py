@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from blender_util import NEEDS_BPY
 from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixtures)
 
 from engine.cameras import look_at_c2w
@@ -51,6 +52,7 @@ def test_arc_poses_keep_distance_height_and_look_at_the_centre():
         [0, 2, 4, 6, 8, 10, 12]
 
 
+@NEEDS_BPY
 @pytest.mark.slow  # ~5 s: 4 path renders of 7 frames (plus the shared tiny reconstruction)
 def test_render_path_along_keyed_orbit(rt_scene, reconstructed, demo_capture, tmp_path):
     """The keyed arc through bpy.ops.bt4d.render_path (EXR + opaque PNG) on a tiny run."""
