@@ -27,20 +27,12 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from engine.cli.train import parse_overrides  # noqa: E402
 from engine.io.capture import load_capture  # noqa: E402
 from engine.scene.fused_adam import FusedAdam  # noqa: E402
 from engine.train.budget import warm_up_runtime  # noqa: E402
 from engine.train.presets import get_preset  # noqa: E402
 from engine.train.trainer import Trainer  # noqa: E402
-
-
-def _value(text: str):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
 
 
 def _timed(record: dict, key: str, fn):
@@ -67,7 +59,7 @@ def main(argv=None) -> None:
     mod = importlib.import_module(mod_name)
     if not isinstance(getattr(mod, attr), bool):
         raise SystemExit(f"{args.switch} is not a boolean switch")
-    overrides = {k: _value(v) for k, v in (s.split("=", 1) for s in args.set)}
+    overrides = parse_overrides(args.set)
     warm_up_runtime("cpu")
     tr = Trainer(load_capture(args.capture), get_preset("fast", {"iterations": args.steps, **overrides}),
                  device="cpu", rgb_only=args.rgb_only, seed=args.seed)
