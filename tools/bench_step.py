@@ -31,6 +31,7 @@ tables and the step speed-ups: before / after a change under the same load.
 from __future__ import annotations
 
 import os
+import sys
 import time
 from contextlib import contextmanager
 
@@ -72,8 +73,6 @@ def _now() -> np.ndarray:
 
 def _gsplat_functions() -> list:
     """gsplat's autograd functions (CUDA runs): their backward is ``raster_bwd``."""
-    import sys
-
     wrapper = sys.modules.get("gsplat.cuda._wrapper")  # loaded by the backend, never imported here
     if wrapper is None:
         return []
