@@ -51,6 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", default="", help="comma-separated names (default: all in the ground truth)")
     ap.add_argument("--steps", type=int, default=15, help="grid instants per interval (spike_flow_steps)")
     ap.add_argument("--window", type=int, default=128, help="TFP window (spike_flow_window)")
+    ap.add_argument("--upsample", type=int, default=2, help="DIS on the grey images upsampled this many times "
+                    "(spike_flow_upsample)")
     args = ap.parse_args(argv)
     cap = load_capture(args.capture)
     if cap.ground_truth is None or cap.ground_truth.objects is None:
@@ -79,9 +81,9 @@ def main(argv=None) -> int:
             init = None
             for q in range(1, n1):
                 t = ref + sign * (b - a) * q / n1
-                fw, bw, ok = warm_flow_pair(gray(ref), gray(t), init)
+                fw, bw, ok = warm_flow_pair(gray(ref), gray(t), init, upsample=args.upsample)
                 init = (fw, bw)
-                flows = {"from zero": flow_pair(gray(ref), gray(t)), "warm": (fw, ok)}
+                flows = {"from zero": flow_pair(gray(ref), gray(t), upsample=args.upsample), "warm": (fw, ok)}
                 for name in names:
                     uv, true = visible_motion(truth, name, view, w, h, ref, t)
                     mag = np.linalg.norm(true, axis=1)

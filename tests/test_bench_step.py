@@ -111,6 +111,17 @@ def test_guided_main_and_crop_variants_switch_the_old_paths_and_restore_them():
     assert bench_step.VARIANTS["crop-off"]["overrides"] == {"spike_crop": False}
 
 
+def test_refresh_before_variant_is_the_old_refresh_periods():
+    """``refresh-before`` trains with the guided step's caches refreshed as before (every 10
+    steps); the defaults are the new periods (README, "The guided step's per-run work")."""
+    from engine.train.presets import get_preset
+
+    assert bench_step.VARIANTS["refresh-before"]["overrides"] == {"spike_flow_surface_every": 10,
+                                                                  "quiet_curves_refresh": 10}
+    cfg = get_preset("fast")
+    assert (cfg.spike_flow_surface_every, cfg.quiet_curves_refresh, cfg.spike_flow_upsample) == (30, 50, 2)
+
+
 def test_step_before_variant_switches_the_old_paths_and_restores_them():
     from engine.scene import trajectory
     from engine.train import interpolation, scene_flow

@@ -155,6 +155,41 @@ def test_trainer_holds_quiet_curves_and_only_those(demo_capture):
     assert float(_inner_norms(off)[off_quiet].max()) > 0.0
 
 
+@pytest.mark.parametrize("refresh", [10, 50])
+def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
+    """``quiet_curves_refresh``: the hook recomputes its mask (projections + change-map lookups,
+    ~14 ms at 23k Gaussians) only after that many steps, when the Gaussian count changes, or
+    for another curves tensor; in between every step applies the cached one."""
+    import types
+
+    from train_util import trajectory_model
+
+    from engine.train import quiet_curves as qc
+
+    calls = []
+    real = qc.quiet_segments
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(qc, "quiet_segments", counting)
+    pts, K = _points_at([[2, 2], [14, 6]])
+    stream = types.SimpleNamespace(view=lambda t: types.SimpleNamespace(viewmat=np.eye(4)), width=W, height=H,
+                                   intrinsics=types.SimpleNamespace(K=K.numpy()))
+    tr = types.SimpleNamespace(cfg=get_preset("fast", {"quiet_curves_refresh": refresh}))
+    hook = qc.QuietCurves(tr, stream, _change([(0, 0, 0)]), [0.0, 0.1, 0.2])
+    m = trajectory_model([0.0, 0.1, 0.2], n=2)
+    with torch.no_grad():
+        m.gaussians.means.copy_(pts)
+    first = hook.mask(m, 100)
+    assert first.shape == (2, 2) and len(calls) == 1
+    assert bool(first[1, 0]) and not bool(first[0, 0])  # interval 0 changed under the first point only
+    assert hook.mask(m, 100 + refresh - 1) is first and len(calls) == 1
+    hook.mask(m, 100 + refresh)
+    assert len(calls) == 2
+
+
 def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     import types
 

@@ -302,11 +302,12 @@ def test_lift_inverts_project():
     assert torch.allclose(lift(uv, z, vm, K), x, atol=1e-5)
 
 
-def test_surface_is_found_and_reused_for_a_few_steps():
+@pytest.mark.parametrize("every", [10, 30])
+def test_surface_is_found_and_reused_for_a_few_steps(every):
     """A toy model in front of the fake spike camera: surface() finds Gaussians the render sees;
-    cached_surface() renders again only after SURFACE_EVERY steps or when the count changes,
-    and re-projects the cached Gaussians' pixels every call."""
-    sup, _ = _fake_supervision()
+    cached_surface() renders again only after ``spike_flow_surface_every`` steps or when the
+    count changes, and re-projects the cached Gaussians' pixels every call."""
+    sup, _ = _fake_supervision(spike_flow_surface_every=every)
     m = _traj_model(n=30)
     renders = []
     real = sup.surface
@@ -326,10 +327,36 @@ def test_surface_is_found_and_reused_for_a_few_steps():
     assert torch.allclose(uv2[:, 0] - uv[:, 0], 80.0 * 0.01 / project(m.gaussians.means.detach()[idx]
                                                                         + torch.tensor([0.01, 0.0, 0.0]),
                                                                         VIEWMAT, K)[1], atol=1e-3)
-    sup.cached_surface(m, 0.1, step=100 + sup.SURFACE_EVERY)
+    sup.cached_surface(m, 0.1, step=100 + every - 1)
+    assert len(renders) == 1
+    sup.cached_surface(m, 0.1, step=100 + every)
     assert len(renders) == 2
     sup.cached_surface(m, 0.2, step=111)  # another RGB instant: its own set
     assert len(renders) == 3
+
+
+@pytest.mark.parametrize("upsample", [1, 2])
+def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
+    """``spike_flow_upsample`` reaches the flow pair (DIS on the grey images upsampled that many
+    times): the term's flows are the ones the README's EPE figures measured."""
+    from engine.train import spike_flow as sf
+
+    cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_upsample": upsample})
+    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
+        viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
+    sup = SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
+                               types.SimpleNamespace(stream=stream, sensor=None))
+    seen = []
+
+    def pair(a, b, init, *, upsample=2, tol_px=0.5):
+        seen.append(upsample)
+        z = np.zeros(a.shape + (2,), np.float32)
+        return z, z, np.ones(a.shape, bool)
+
+    monkeypatch.setattr(sf, "warm_flow_pair", pair)
+    sup.gray = lambda t: np.zeros((60, 80), np.float32)
+    sup.estimate(0.1, 0.15)
+    assert seen == [upsample]
 
 
 @pytest.mark.slow
@@ -471,3 +498,43 @@ def test_warm_flow_pair_finds_a_jump_that_a_flow_from_zero_misses():
     cold, cold_ok = flow_pair(first, frame(25)[0])
     assert np.abs(fw[disc][:, 0] - 25.0).mean() < 1.0 and ok[disc].mean() > 0.9
     assert np.abs(cold[disc][:, 0] - 25.0).mean() > 10.0 and cold_ok[disc].mean() < 0.6
+
+
+def test_grey_images_are_kept_least_recently_used_first_out(monkeypatch):
+    """``gray`` keeps at most GRAY_CACHE images (every flow pair of a run kept them all: ~1 GB
+    of a 3 s Vidar capture's); an evicted one asked for again is recomputed, the same array."""
+    from engine.train import spike_flow as sf
+    from engine.train.spike_flow_pairs import RecentGreys
+
+    monkeypatch.setattr(sf, "GRAY_CACHE", 3)
+    sup, _ = _fake_supervision()
+    made = []
+
+    def tfp(stream, t, sensor, method="tfp", window=128):
+        made.append(round(t * stream.rate_hz))
+        return np.full((60, 80), t, np.float32)
+
+    monkeypatch.setattr(sf, "spike_to_gray", tfp)
+    assert isinstance(sup._gray, RecentGreys) and sup._gray.capacity == 3
+    frames = [0.1, 0.105, 0.11, 0.115]
+    first = sup.gray(frames[0])
+    for t in frames[1:3]:
+        sup.gray(t)
+    assert sup.gray(frames[0]) is first and len(made) == 3  # a hit moves it to the back
+    sup.gray(frames[3])  # evicts the least recently used: 0.105
+    assert len(sup._gray) == 3 and sup.frame_of(frames[1]) not in sup._gray
+    again = sup.gray(frames[1])
+    assert len(made) == 5 and made[-1] == sup.frame_of(frames[1])
+    np.testing.assert_array_equal(again, np.full((60, 80), frames[1], np.float32))
+
+
+def test_flow_cache_keeps_the_valid_mask_as_bytes_with_the_same_samples():
+    """The cached mask is uint8 (a quarter of float32's bytes); the term reads it through
+    sample_map, which gives the very 0 / 1 floats the float32 mask gave."""
+    sup, _ = _fake_supervision()
+    flow, valid = sup.flow(0.1, 0.15)
+    assert flow.dtype == torch.float32 and valid.dtype == torch.uint8 and valid.shape == (60, 80, 1)
+    valid[:10] = 0  # some invalid rows
+    uv = torch.rand(500, 2) * torch.tensor([80.0, 60.0])
+    for mode in ("nearest", "bilinear"):
+        assert torch.equal(sample_map(valid, uv, mode), sample_map(valid.float(), uv, mode))

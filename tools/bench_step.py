@@ -366,6 +366,10 @@ VARIANTS = {
     "sink-off": {"doc": "every reader of the curves returns its own full [N, K, C] gradient and autograd sums "
                         "them, as before trajectory.gradient_sink (same numbers)", "hexplane_sampler": "auto",
                  "patches": {(trajectory, "SINK"): False}},
+    "refresh-before": {"doc": "the guided step's per-run caches refreshed as before: the flow term's visible-surface "
+                              "sets every 10 steps, the quiet curves' mask every 10 (spike_flow_surface_every, "
+                              "quiet_curves_refresh; now 30 and 50)", "hexplane_sampler": "auto",
+                       "overrides": {"spike_flow_surface_every": 10, "quiet_curves_refresh": 10}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},

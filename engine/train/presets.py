@@ -277,6 +277,15 @@ class TrainConfig:
     spike_flow_depth_tol: float = 0.03  # visible surface: |z - rendered depth| <= tol x depth
     spike_flow_beta: float = 1.0  # smooth-L1 knee (spike px)
     spike_flow_max_gaussians: int = 4096  # random subset of the surface Gaussians per step (0: all)
+    # DIS runs on the grey images upsampled this many times. 1 (at the sensor's pixels) would save ~3 ms of a
+    # guided demo step, but its flows are worse (EPE on the fast ball 5.8 -> 6.4 px, ``between``'s ball 1.4 -> 1.7)
+    # and 1000 fast steps lose between RGB frames on all six runs: demo -0.09 / -0.05, fast -0.29 / -0.49,
+    # between -0.21 / -0.22 dB (README "The guided step's per-run work")
+    spike_flow_upsample: int = 2
+    # steps a reference instant's visible-surface set (a render at the spike view, ~11 ms) is reused while the
+    # Gaussian count is unchanged; 10 -> 30: 1000 fast steps, seeds 0 / 1, between RGB frames demo +0.12 / +0.02,
+    # fast +0.01 / -0.04, between -0.03 / -0.07 dB (README "The guided step's per-run work")
+    spike_flow_surface_every: int = 30
     spike_flow_fit: bool = True  # once per interval, least-squares fit of the inner control points to the flow
     spike_flow_min_px: float = 0.5  # the fit leaves curves whose median flow is below this (spike px) where they are
     # the curves' place at the next RGB instant from the spike flow (spike_flow.flow_junctions), at each
@@ -298,6 +307,10 @@ class TrainConfig:
     # between 21.80 / 21.83 / 21.69 (0 clips the moving objects' edges)
     quiet_curves: bool = True
     quiet_curves_dilate: int = 1
+    # steps a quiet mask (~14 ms at 23k Gaussians) is reused while the Gaussian count is unchanged; 10 -> 50:
+    # 1000 fast steps, seeds 0 / 1, between RGB frames demo +0.06 / +0.22, fast +0.05 / +0.04, between
+    # +0.02 / -0.06 dB (README "The guided step's per-run work")
+    quiet_curves_refresh: int = 50
     # quiet_junctions: the junctions joined by quiet segments are also held equal (their mean): a Gaussian
     # the spike view saw still over a run of RGB intervals stays where it was. Off: 1000 fast steps, seeds
     # 0 / 1 / 2, between RGB frames: demo +0.13 / +0.27 / -0.05, fast +0.26 / +0.05, between -0.13 / -0.14 /

@@ -22,7 +22,7 @@ change during interval ``k`` (:class:`engine.spike.change.SpikeChange`, dilated 
 the two RGB instants is the smooth one the RGB frames give. Gaussians outside the spike view
 or over a change keep their bends. Applied after every optimiser step (a projection onto
 the constraint, also undoing the flow fit's changes there); the mask is recomputed when the
-Gaussian count changes and every :attr:`QuietCurves.REFRESH` steps (junctions move slowly).
+Gaussian count changes and every ``quiet_curves_refresh`` steps (junctions move slowly).
 
 ``quiet_junctions`` (off) also holds the junctions joined by a run of quiet segments at their
 mean (:func:`tie_junctions`): each RGB instant fits a Gaussian's place on its own (consecutive
@@ -138,8 +138,6 @@ def tie_junctions(params: torch.Tensor, groups: torch.Tensor) -> None:
 class QuietCurves:
     """Post-step hook of a run (see the module doc)."""
 
-    REFRESH = 10  # steps a quiet mask is reused while the Gaussian count is unchanged
-
     def __init__(self, trainer, stream, change, rgb_times):
         self.cfg = trainer.cfg
         self.rgb_times = [float(t) for t in rgb_times]  # the change maps' intervals run between these
@@ -161,7 +159,8 @@ class QuietCurves:
         params = getattr(g, TRAJ_MEANS)
         hit = self._mask
         # keyed on the curves' tensor too: the budget probe steps a copy of the model through this hook
-        if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= self.REFRESH or step < hit[0]
+        refresh = max(1, int(self.cfg.quiet_curves_refresh))
+        if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= refresh or step < hit[0]
                 or hit[4] != id(params)):
             dev = params.device
             quiet = quiet_segments(g.means.detach(), params.detach()[:, 0::3], self.change,

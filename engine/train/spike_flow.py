@@ -48,11 +48,12 @@ from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
 from .baselines import spike_to_gray
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
-from .spike_flow_pairs import flow_pair, forward_backward_valid, gray_to_u8, warm_flow_pair
+from .spike_flow_pairs import RecentGreys, flow_pair, forward_backward_valid, gray_to_u8, warm_flow_pair
 from .spike_guidance import admitted_time, spike_view_guidance
 from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
+GRAY_CACHE = 64  # grey images the flow term keeps (spike_flow_pairs.RecentGreys); a miss recomputes one
 
 __all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "warm_flow_pair",
            "sample_map", "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals",
@@ -174,7 +175,7 @@ class SpikeFlowSupervision:
                    "height": int(stream.height), "campos": torch.as_tensor(view.center, dtype=torch.float32,
                                                                            device=dev), "time": 0.0}
         self.times = list(trainer.frame_times)
-        self._gray: dict[int, np.ndarray] = {}
+        self._gray = RecentGreys(self._make_gray, GRAY_CACHE)
         self._flows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
         self._warm: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # chain ends (spike_flow_warm)
         self.last: dict = {}  # diagnostics of the last evaluation
@@ -187,19 +188,17 @@ class SpikeFlowSupervision:
         return int(round((float(t) - self.stream.t0) * self.stream.rate_hz))
 
     def gray(self, t: float) -> np.ndarray:
-        """Linear grey image [h, w] reconstructed from the spikes around ``t`` (cached)."""
-        k = self.frame_of(t)
-        if k not in self._gray:
-            tk = self.stream.t0 + k / self.stream.rate_hz
-            self._gray[k] = spike_to_gray(self.stream, tk, self.guidance.sensor, method="tfp",
-                                          window=int(self.cfg.spike_flow_window))
-        return self._gray[k]
+        """Linear grey image [h, w] reconstructed from the spikes around ``t`` (LRU-cached)."""
+        return self._gray(self.frame_of(t))
+
+    def _make_gray(self, k: int) -> np.ndarray:
+        return spike_to_gray(self.stream, self.stream.t0 + k / self.stream.rate_hz, self.guidance.sensor,
+                             method="tfp", window=int(self.cfg.spike_flow_window))
 
     def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """(flow ref -> t [h, w, 2], valid float [h, w, 1]) as tensors on the trainer's device
-        (cached). With ``spike_flow_warm`` the flow to a grid instant starts from the flow to
-        the grid instant one step closer to ``t_ref`` (engine.train.spike_flow_pairs), so the
-        pairs of a reference are computed in order, each once."""
+        """(flow ref -> t [h, w, 2], valid uint8 [h, w, 1]: sample_map reads it as 0 / 1 floats)
+        on the trainer's device (cached). With ``spike_flow_warm`` the flow to a grid instant starts
+        from the flow to the grid instant one step closer to ``t_ref`` (spike_flow_pairs)."""
         key = (self.frame_of(t_ref), self.frame_of(t))
         hit = self._flows.get(key)
         if hit is None:
@@ -213,7 +212,7 @@ class SpikeFlowSupervision:
                 self._warm[key] = (fl, back)
             dev = self.trainer.device
             hit = (torch.as_tensor(fl, dtype=torch.float32, device=dev),
-                   torch.as_tensor(ok, dtype=torch.float32, device=dev)[..., None])
+                   torch.as_tensor(np.asarray(ok) > 0, dtype=torch.uint8, device=dev)[..., None])
             self._flows[key] = hit
         return hit
 
@@ -240,7 +239,8 @@ class SpikeFlowSupervision:
         """(flow [h, w, 2], valid bool [h, w], backward flow [h, w, 2]) from the spike stream,
         warm-started from ``init`` (forward, backward) when given (the oracle script
         ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion)."""
-        fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, tol_px=float(self.cfg.spike_flow_fb_tol))
+        fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, upsample=int(self.cfg.spike_flow_upsample),
+                                    tol_px=float(self.cfg.spike_flow_fb_tol))
         return fw, ok, bw
 
     # --- instants ------------------------------------------------------------------------
@@ -280,14 +280,12 @@ class SpikeFlowSupervision:
             keep = (a > 0.5) & ((z[idx] - d).abs() <= float(self.cfg.spike_flow_depth_tol) * d)
             return idx[keep], uvi[keep]
 
-    SURFACE_EVERY = 10  # steps a surface set is reused (the render at T costs ~15 ms; it changes slowly)
-
     def cached_surface(self, model: Model4D, t_ref: float, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`surface`, its Gaussian indices reused for :attr:`SURFACE_EVERY` steps while the
-        Gaussian count is unchanged (densification re-indexes); pixels are re-projected every call."""
+        """:meth:`surface` (a render, ~10 ms on the demo), its indices reused ``spike_flow_surface_every``
+        steps while the Gaussian count is unchanged (densification re-indexes); pixels re-projected."""
         n = model.gaussians.num_gaussians
         hit = self._surface.get(t_ref)
-        if hit is None or hit[1] != n or step - hit[0] >= self.SURFACE_EVERY or step < hit[0]:
+        if hit is None or hit[1] != n or step - hit[0] >= max(1, self.cfg.spike_flow_surface_every) or step < hit[0]:
             idx, uv = self.surface(model, t_ref)
             self._surface[t_ref] = (step, n, idx)
             return idx, uv
