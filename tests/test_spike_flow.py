@@ -530,10 +530,14 @@ def test_grey_images_are_kept_least_recently_used_first_out(monkeypatch):
 
 def test_flow_cache_keeps_the_valid_mask_as_bytes_with_the_same_samples():
     """The cached mask is uint8 (a quarter of float32's bytes); the term reads it through
-    sample_map, which gives the very 0 / 1 floats the float32 mask gave."""
+    sample_map, which gives the very 0 / 1 floats the float32 mask gave. The flow is kept in
+    float16 (5 bytes per pixel and pair with the mask, against 12): its samples are the
+    float32 flow's to float16 rounding (2^-11 relative: < 0.02 px below 32 px of motion)."""
     sup, _ = _fake_supervision()
     flow, valid = sup.flow(0.1, 0.15)
-    assert flow.dtype == torch.float32 and valid.dtype == torch.uint8 and valid.shape == (60, 80, 1)
+    assert flow.dtype == torch.float16 and valid.dtype == torch.uint8 and valid.shape == (60, 80, 1)
+    exact = torch.as_tensor(sup.estimate(0.1, 0.15)[0])
+    assert torch.allclose(sample_map(flow, torch.tensor([[3.5, 7.5]])), exact[7, 3][None], rtol=2 ** -11, atol=0)
     valid[:10] = 0  # some invalid rows
     uv = torch.rand(500, 2) * torch.tensor([80.0, 60.0])
     for mode in ("nearest", "bilinear"):

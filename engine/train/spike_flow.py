@@ -54,6 +54,7 @@ from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss,
 
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
 GRAY_CACHE = 64  # grey images the flow term keeps (spike_flow_pairs.RecentGreys); a miss recomputes one
+FLOW_DTYPE = torch.float16  # cached flows (every pair is kept for the run; README "The guided step's per-run work")
 
 __all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "warm_flow_pair",
            "sample_map", "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals",
@@ -196,7 +197,7 @@ class SpikeFlowSupervision:
                              method="tfp", window=int(self.cfg.spike_flow_window))
 
     def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """(flow ref -> t [h, w, 2], valid uint8 [h, w, 1]: sample_map reads it as 0 / 1 floats)
+        """(flow ref -> t float16 [h, w, 2], valid uint8 [h, w, 1]; sample_map reads both as float32)
         on the trainer's device (cached). With ``spike_flow_warm`` the flow to a grid instant starts
         from the flow to the grid instant one step closer to ``t_ref`` (spike_flow_pairs)."""
         key = (self.frame_of(t_ref), self.frame_of(t))
@@ -211,7 +212,7 @@ class SpikeFlowSupervision:
             if more:  # only the latest pair of a chain is kept, for the next one
                 self._warm[key] = (fl, back)
             dev = self.trainer.device
-            hit = (torch.as_tensor(fl, dtype=torch.float32, device=dev),
+            hit = (torch.as_tensor(fl, dtype=FLOW_DTYPE, device=dev),
                    torch.as_tensor(np.asarray(ok) > 0, dtype=torch.uint8, device=dev)[..., None])
             self._flows[key] = hit
         return hit
