@@ -122,6 +122,15 @@ def test_refresh_before_variant_is_the_old_refresh_periods():
     assert (cfg.spike_flow_surface_every, cfg.quiet_curves_refresh, cfg.spike_flow_upsample) == (30, 50, 2)
 
 
+def test_flow_inline_variant_computes_the_flows_in_the_step():
+    """``flow-inline`` is the flow term without its prefetch worker (the default has one, two
+    intervals ahead: README, "The guided step's per-run work")."""
+    from engine.train.presets import get_preset
+
+    assert bench_step.VARIANTS["flow-inline"]["overrides"] == {"spike_flow_prefetch": 0}
+    assert get_preset("fast").spike_flow_prefetch == 2
+
+
 def test_step_before_variant_switches_the_old_paths_and_restores_them():
     from engine.scene import trajectory
     from engine.train import interpolation, scene_flow

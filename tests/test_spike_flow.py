@@ -339,7 +339,7 @@ def test_surface_is_found_and_reused_for_a_few_steps(every):
 def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
     """``spike_flow_upsample`` reaches the flow pair (DIS on the grey images upsampled that many
     times): the term's flows are the ones the README's EPE figures measured."""
-    from engine.train import spike_flow as sf
+    from engine.train import spike_flow_cache as sfc
 
     cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_upsample": upsample})
     stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
@@ -353,7 +353,7 @@ def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
         z = np.zeros(a.shape + (2,), np.float32)
         return z, z, np.ones(a.shape, bool)
 
-    monkeypatch.setattr(sf, "warm_flow_pair", pair)
+    monkeypatch.setattr(sfc, "warm_flow_pair", pair)
     sup.gray = lambda t: np.zeros((60, 80), np.float32)
     sup.estimate(0.1, 0.15)
     assert seen == [upsample]
@@ -503,10 +503,10 @@ def test_warm_flow_pair_finds_a_jump_that_a_flow_from_zero_misses():
 def test_grey_images_are_kept_least_recently_used_first_out(monkeypatch):
     """``gray`` keeps at most GRAY_CACHE images (every flow pair of a run kept them all: ~1 GB
     of a 3 s Vidar capture's); an evicted one asked for again is recomputed, the same array."""
-    from engine.train import spike_flow as sf
+    from engine.train import spike_flow_cache as sfc
     from engine.train.spike_flow_pairs import RecentGreys
 
-    monkeypatch.setattr(sf, "GRAY_CACHE", 3)
+    monkeypatch.setattr(sfc, "GRAY_CACHE", 3)
     sup, _ = _fake_supervision()
     made = []
 
@@ -514,7 +514,7 @@ def test_grey_images_are_kept_least_recently_used_first_out(monkeypatch):
         made.append(round(t * stream.rate_hz))
         return np.full((60, 80), t, np.float32)
 
-    monkeypatch.setattr(sf, "spike_to_gray", tfp)
+    monkeypatch.setattr(sfc, "spike_to_gray", tfp)
     assert isinstance(sup._gray, RecentGreys) and sup._gray.capacity == 3
     frames = [0.1, 0.105, 0.11, 0.115]
     first = sup.gray(frames[0])
@@ -542,3 +542,71 @@ def test_flow_cache_keeps_the_valid_mask_as_bytes_with_the_same_samples():
     uv = torch.rand(500, 2) * torch.tensor([80.0, 60.0])
     for mode in ("nearest", "bilinear"):
         assert torch.equal(sample_map(valid, uv, mode), sample_map(valid.float(), uv, mode))
+
+
+def test_prefetch_computes_the_admitted_chains_on_its_thread_as_the_step_would():
+    """``spike_flow_prefetch``: both chains of every interval up to the admitted one and of
+    that many intervals beyond are computed on the background worker, earlier intervals
+    first, warm-started along the grid exactly as the inline path does; a pair not queued is
+    computed there too, at once, while the caller waits (engine.train.spike_flow_cache)."""
+    import threading
+
+    inline, calls0 = _fake_supervision(spike_flow_prefetch=0)
+    assert inline._worker is None and get_preset("fast").spike_flow_prefetch == 2  # on by default (README)
+    sup, calls = _fake_supervision(spike_flow_prefetch=1)
+    threads = []
+    est = sup.estimate
+
+    def estimate(*a, **k):
+        threads.append(threading.current_thread().name)
+        return est(*a, **k)
+
+    sup.estimate = estimate
+    assert sup.prefetch(admitted=0.05) == 1  # interval 0 admitted, interval 1 ahead; 2 not yet
+    sup._worker.join(10)
+    assert [(r, round(t, 6)) for r, t in calls] == [  # chains from each end to the far grid instant
+        (0.0, 0.025), (0.0, 0.05), (0.0, 0.075), (0.1, 0.075), (0.1, 0.05), (0.1, 0.025),
+        (0.1, 0.125), (0.1, 0.15), (0.1, 0.175), (0.2, 0.175), (0.2, 0.15), (0.2, 0.125)]
+    assert set(threads) == {"bt4d-flow-prefetch"}
+    for r, t in calls:
+        inline.flow(r, t)
+    assert calls0 == calls and inline.inits == sup.inits
+    for key, (f, v) in inline._flows.items():
+        assert torch.equal(sup._flows[key][0], f) and torch.equal(sup._flows[key][1], v)
+    sup.flow(0.1, 0.15)  # prefetched: nothing computed
+    assert len(calls) == 12
+    flow, _ = sup.flow(0.3, 0.275)  # not queued: computed on the worker, this thread waits
+    assert len(calls) == 13 and threads[-1] == "bt4d-flow-prefetch" and flow.shape == (60, 80, 2)
+    assert sup.prefetch(admitted=0.3) == 2
+    sup.close_flows()  # a finished or cancelled run: the rest is computed inline, if ever
+    sup.flow(0.2, 0.26)  # off the grid: one pair
+    assert sup._worker is None and threads[-1] == threading.current_thread().name
+
+
+@pytest.mark.slow
+def test_prefetched_flows_train_bit_for_bit_like_inline_ones(demo_capture):
+    """Real guided steps on the demo: the run with the flows computed ahead on the worker has
+    the very parameters of the run that computes them in the step (DIS is deterministic and
+    each chain is computed in the same order)."""
+    import hashlib
+
+    from engine.io.capture import load_capture
+    from engine.train.trainer import Trainer
+
+    cap = load_capture(demo_capture)
+    digests, ran = [], []
+    for ahead in (0, 2):
+        torch.manual_seed(0)
+        tr = Trainer(cap, get_preset("fast", {**_TINY, "spike_flow_prefetch": ahead}), device="cpu")
+        tr.init_model()
+        for i in range(8):
+            tr.step(i)
+        assert tr.spike_flow._flows
+        ran.append(0 if tr.spike_flow._worker is None else len(tr.spike_flow._worker.ran))
+        tr.spike_flow.close_flows()
+        h = hashlib.sha1()
+        for grp in tr.model.gaussians.optimizer.param_groups:
+            for p in grp["params"]:
+                h.update(p.detach().numpy().tobytes())
+        digests.append(h.hexdigest())
+    assert ran[0] == 0 and ran[1] > 0 and digests[0] == digests[1]

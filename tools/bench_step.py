@@ -370,6 +370,9 @@ VARIANTS = {
                               "sets every 10 steps, the quiet curves' mask every 10 (spike_flow_surface_every, "
                               "quiet_curves_refresh; now 30 and 50)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_surface_every": 10, "quiet_curves_refresh": 10}},
+    "flow-inline": {"doc": "spike_flow_prefetch=0: the flow term's DIS flows computed in the step that first needs "
+                           "them, as before the background worker (engine.train.spike_flow_cache; same flows)",
+                    "hexplane_sampler": "auto", "overrides": {"spike_flow_prefetch": 0}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
@@ -407,6 +410,8 @@ def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only:
                 tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
                 continue
             prof.run_step(tr, i, "static" if stage == "static" else deform)
+    if getattr(tr, "spike_flow", None) is not None:  # its prefetch worker must not run into the next run
+        tr.spike_flow.close_flows()
     enc = getattr(tr.model.deformation, "fine_encoder", None)
     if enc is not None and hasattr(enc, "encoded"):  # spike windows encoded / shared / reused stale
         e = enc.encoded

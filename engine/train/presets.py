@@ -286,6 +286,9 @@ class TrainConfig:
     # Gaussian count is unchanged; 10 -> 30: 1000 fast steps, seeds 0 / 1, between RGB frames demo +0.12 / +0.02,
     # fast +0.01 / -0.04, between -0.03 / -0.07 dB (README "The guided step's per-run work")
     spike_flow_surface_every: int = 30
+    # RGB intervals beyond the admitted time whose flows a background thread computes ahead of the steps that
+    # need them (engine.train.spike_flow_cache; the same flows): 0 computes each in the step that first needs it
+    spike_flow_prefetch: int = 2
     spike_flow_fit: bool = True  # once per interval, least-squares fit of the inner control points to the flow
     spike_flow_min_px: float = 0.5  # the fit leaves curves whose median flow is below this (spike px) where they are
     # the curves' place at the next RGB instant from the spike flow (spike_flow.flow_junctions), at each

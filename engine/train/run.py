@@ -239,6 +239,10 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         update_run_json(run_dir, status="failed", step=step, train_seconds=train_seconds,
                         error=f"{exc.__class__.__name__}: {exc}")
         raise
+    finally:  # the spike-flow term's prefetch worker: what it has not started is not needed now
+        flow = getattr(trainer, "spike_flow", None)
+        if flow is not None:
+            flow.close_flows()
     train_seconds = prior_seconds + time.perf_counter() - t_start
     snapshot(step, status, train_seconds)
     skips = trainer.skip_summary()

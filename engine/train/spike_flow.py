@@ -45,18 +45,17 @@ import torch
 
 from ..scene import trajectory as traj
 from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
-from .baselines import spike_to_gray
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
-from .spike_flow_pairs import RecentGreys, flow_pair, forward_backward_valid, gray_to_u8, warm_flow_pair
+from .spike_flow_cache import FLOW_DTYPE, GRAY_CACHE, FlowCache
+from .spike_flow_pairs import flow_pair, forward_backward_valid, gray_to_u8, warm_flow_pair
 from .spike_guidance import admitted_time, spike_view_guidance
 from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
-GRAY_CACHE = 64  # grey images the flow term keeps (spike_flow_pairs.RecentGreys); a miss recomputes one
-FLOW_DTYPE = torch.float16  # cached flows (every pair is kept for the run; README "The guided step's per-run work")
 
-__all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "warm_flow_pair",
+__all__ = ["JUNCTION_MODES", "FLOW_DTYPE", "GRAY_CACHE", "gray_to_u8", "dense_flow", "forward_backward_valid",
+           "flow_pair", "warm_flow_pair",
            "sample_map", "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals",
            "inner_only_positions", "subset_positions", "SpikeFlowSupervision", "spike_flow_factory"]
 
@@ -155,8 +154,9 @@ def subset_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tenso
 
 
 # ------------------------------------------------------------------------------ trainer term
-class SpikeFlowSupervision:
-    """Per-run state of the term: flow cache, the spike camera and the RGB instants."""
+class SpikeFlowSupervision(FlowCache):
+    """Per-run state of the term: flow cache (engine.train.spike_flow_cache), the spike camera
+    and the RGB instants."""
 
     def __init__(self, trainer, guidance):
         self.trainer = trainer
@@ -176,73 +176,10 @@ class SpikeFlowSupervision:
                    "height": int(stream.height), "campos": torch.as_tensor(view.center, dtype=torch.float32,
                                                                            device=dev), "time": 0.0}
         self.times = list(trainer.frame_times)
-        self._gray = RecentGreys(self._make_gray, GRAY_CACHE)
-        self._flows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
-        self._warm: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # chain ends (spike_flow_warm)
+        self.init_flows()
         self.last: dict = {}  # diagnostics of the last evaluation
         self.fitted: dict[int, dict] = {}  # interval -> counts of its fit (spike_flow_fit)
         self._surface: dict[float, tuple] = {}  # t_ref -> (step, Gaussian count, indices)
-
-    # --- flow cache ----------------------------------------------------------------------
-    def frame_of(self, t: float) -> int:
-        """Spike frame index nearest to ``t`` (the cache's key for an instant)."""
-        return int(round((float(t) - self.stream.t0) * self.stream.rate_hz))
-
-    def gray(self, t: float) -> np.ndarray:
-        """Linear grey image [h, w] reconstructed from the spikes around ``t`` (LRU-cached)."""
-        return self._gray(self.frame_of(t))
-
-    def _make_gray(self, k: int) -> np.ndarray:
-        return spike_to_gray(self.stream, self.stream.t0 + k / self.stream.rate_hz, self.guidance.sensor,
-                             method="tfp", window=int(self.cfg.spike_flow_window))
-
-    def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """(flow ref -> t float16 [h, w, 2], valid uint8 [h, w, 1]; sample_map reads both as float32)
-        on the trainer's device (cached). With ``spike_flow_warm`` the flow to a grid instant starts
-        from the flow to the grid instant one step closer to ``t_ref`` (spike_flow_pairs)."""
-        key = (self.frame_of(t_ref), self.frame_of(t))
-        hit = self._flows.get(key)
-        if hit is None:
-            prev, more = self.warm_from(t_ref, t)
-            init = None
-            if prev is not None:
-                self.flow(t_ref, prev)
-                init = self._warm.pop((key[0], self.frame_of(prev)), None)
-            fl, ok, back = self.estimate(t_ref, t, init)
-            if more:  # only the latest pair of a chain is kept, for the next one
-                self._warm[key] = (fl, back)
-            dev = self.trainer.device
-            hit = (torch.as_tensor(fl, dtype=FLOW_DTYPE, device=dev),
-                   torch.as_tensor(np.asarray(ok) > 0, dtype=torch.uint8, device=dev)[..., None])
-            self._flows[key] = hit
-        return hit
-
-    def grid_step(self, t: float) -> tuple[float, float, int, int]:
-        """(a, b, q, n + 1): ``t``'s RGB interval [a, b] and its nearest grid index q, not clamped."""
-        k = max(i for i, v in enumerate(self.times) if v <= t)  # ts[0] < t < ts[-1]
-        a, b, n1 = self.times[k], self.times[k + 1], max(1, int(self.cfg.spike_flow_steps)) + 1
-        return a, b, int(round((t - a) / (b - a) * n1)), n1
-
-    def warm_from(self, t_ref: float, t: float) -> tuple[float | None, bool]:
-        """(the grid instant one step from ``t`` towards ``t_ref`` (an end of ``t``'s RGB
-        interval) whose flow warm-starts ``t``'s, or None at the first step, off the grid or
-        with ``spike_flow_warm`` off; whether a later step will start from ``t``'s flow)."""
-        if not self.cfg.spike_flow_warm or not self.times or not self.times[0] < t < self.times[-1]:
-            return None, False
-        a, b, q, n1 = self.grid_step(t)
-        if self.frame_of(a + (b - a) * q / n1) != self.frame_of(t) or t_ref not in (a, b):
-            return None, False
-        step = -1 if t_ref == a else 1
-        prev, nxt = q + step, q - step
-        return (None if prev in (0, n1) else a + (b - a) * prev / n1), nxt not in (0, n1)
-
-    def estimate(self, t_ref: float, t: float, init: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(flow [h, w, 2], valid bool [h, w], backward flow [h, w, 2]) from the spike stream,
-        warm-started from ``init`` (forward, backward) when given (the oracle script
-        ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion)."""
-        fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, upsample=int(self.cfg.spike_flow_upsample),
-                                    tol_px=float(self.cfg.spike_flow_fb_tol))
-        return fw, ok, bw
 
     # --- instants ------------------------------------------------------------------------
     def instants(self, t: float, admitted: float) -> tuple[float, float] | None:
@@ -440,7 +377,13 @@ class SpikeFlowSupervision:
         return info
 
     def after_step(self, tr, step, item, meta) -> None:
-        """Post-step hook: the interval fits asked for during this step."""
+        """Post-step hook: the flows of the intervals the next step may admit queued
+        (the static stage's steps already run beside the first ones); the interval fits
+        asked for during this step."""
+        if tr is self.trainer and callable(getattr(tr, "time_window", None)):  # not the budget's probe copy
+            self.prefetch(tr.time_window(step + 1))
+        if not self.cfg.spike_flow_fit:
+            return
         for k, info in list(self.fitted.items()):
             if not info and tr.model is not None and tr.model.trajectory is not None:
                 self.fitted[k] = self.fit_interval(tr.model, k, float(tr.extent))
@@ -452,6 +395,8 @@ class SpikeFlowSupervision:
         b, model = hit
         tr = ctx.trainer
         admitted = admitted_time(ctx, self.times[-1])
+        if tr is self.trainer:
+            self.prefetch(admitted)
         pair = self.instants(float(b["instant"].time), admitted)
         if pair is None:
             return None
@@ -494,6 +439,6 @@ def spike_flow_factory(trainer) -> list:
     term = SpikeFlowSupervision(trainer, guid)
     trainer.spike_flow = term
     hooks = getattr(trainer, "post_step_hooks", None)
-    if hooks is not None and cfg.spike_flow_fit:
+    if hooks is not None:
         hooks.append(term.after_step)
     return [LossTerm("spike_flow", float(cfg.spike_flow_weight), term, stages=("deform",))]

@@ -1,0 +1,99 @@
+"""engine.train.background.PriorityWorker: the spike-flow prefetch's one background thread."""
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from engine.train.background import URGENT, PriorityWorker
+
+
+def _blocked_worker():
+    """A worker whose first job holds its thread until ``gate`` is set."""
+    w, gate, started = PriorityWorker("test-worker"), threading.Event(), threading.Event()
+
+    def hold():
+        started.set()
+        gate.wait(10)
+
+    w.submit("hold", hold, priority=0)
+    assert started.wait(10)
+    return w, gate
+
+
+def test_jobs_run_on_one_thread_lowest_priority_first_and_an_urgent_run_jumps_the_queue():
+    w, gate = _blocked_worker()
+    threads = []
+    for key, prio in (("c", 3), ("a", 1), ("b", 2)):
+        w.submit(key, lambda: threads.append(threading.current_thread().name), priority=prio)
+    waiter = threading.Thread(target=w.run, args=("now", lambda: threads.append("now")))
+    waiter.start()
+    deadline = time.monotonic() + 10
+    while w.pending() < 5 and time.monotonic() < deadline:  # hold, a, b, c, now
+        time.sleep(0.001)
+    gate.set()
+    waiter.join(10)
+    w.join(10)
+    assert w.ran == ["hold", "now", "a", "b", "c"]
+    assert set(threads[1:]) == {"test-worker"} and threads[0] == "now"
+    assert w.pending() == 0 and not w.on_worker()
+
+
+def test_a_key_runs_once_and_a_queued_job_is_promoted():
+    w, gate = _blocked_worker()
+    n = []
+    w.submit("x", lambda: n.append("x"), priority=5)
+    w.submit("y", lambda: n.append("y"), priority=1)
+    w.submit("x", lambda: n.append("x again"), priority=0)  # promoted, its first fn kept
+    gate.set()
+    w.join(10)
+    w.run("x", lambda: n.append("x third"))  # done: nothing runs
+    assert n == ["x", "y"] and w.ran == ["hold", "x", "y"]
+
+
+def test_run_raises_the_jobs_exception_and_the_worker_goes_on():
+    w = PriorityWorker()
+
+    def boom():
+        raise ValueError("bad flow")
+
+    with pytest.raises(ValueError, match="bad flow"):
+        w.run("boom", boom)
+    out = []
+    w.run("ok", lambda: out.append(1))
+    assert out == [1]
+
+
+def test_run_on_the_worker_thread_runs_inline():
+    w = PriorityWorker()
+    seen = []
+
+    def outer():
+        w.run("inner", lambda: seen.append(("inner", w.on_worker())))  # would deadlock if queued
+        seen.append(("outer", w.on_worker()))
+
+    w.run("outer", outer)
+    assert seen == [("inner", True), ("outer", True)]
+
+
+def test_close_drops_what_has_not_started_and_refuses_new_jobs():
+    w, gate = _blocked_worker()
+    ran = []
+    w.submit("later", lambda: ran.append("later"), priority=1)
+    w.close()
+    gate.set()
+    w.join(10)
+    assert ran == [] and w.ran == ["hold"]
+    with pytest.raises(RuntimeError, match="closed"):
+        w.submit("new", lambda: None)
+
+
+def test_the_thread_exits_when_idle_and_a_new_job_starts_another():
+    w = PriorityWorker()
+    w.run("one", lambda: None)
+    w.join(10)
+    assert w._thread is None
+    w.run("two", lambda: None)
+    w.join(10)
+    assert w.ran == ["one", "two"] and URGENT < 0
