@@ -610,3 +610,61 @@ def test_prefetched_flows_train_bit_for_bit_like_inline_ones(demo_capture):
                 h.update(p.detach().numpy().tobytes())
         digests.append(h.hexdigest())
     assert ran[0] == 0 and ran[1] > 0 and digests[0] == digests[1]
+
+
+def test_closing_cuts_a_running_chain_between_pairs_and_it_resumes_inline():
+    """A cancelled run waits one DIS pair at most: ``close_flows`` stops the worker's chain
+    before its next pair and drops the queued ones; a later inline flow resumes the cut chain
+    from its last pair, warm-started as an uncut chain would be."""
+    import threading
+    import time
+
+    sup, calls = _fake_supervision(spike_flow_prefetch=1)
+    inline, _ = _fake_supervision(spike_flow_prefetch=0)
+    gate, first = threading.Event(), threading.Event()
+    est = sup.estimate
+
+    def estimate(*a, **k):
+        out = est(*a, **k)
+        if len(calls) == 1:  # hold the worker inside the first pair
+            first.set()
+            gate.wait(10)
+        return out
+
+    sup.estimate = estimate
+    sup.prefetch(admitted=0.05)  # four chains queued
+    assert first.wait(10)
+    closer = threading.Thread(target=sup.close_flows)
+    closer.start()
+    deadline = time.monotonic() + 10
+    while not sup._stopping and time.monotonic() < deadline:
+        time.sleep(0.001)
+    gate.set()
+    closer.join(10)
+    assert not closer.is_alive() and sup._worker is None and len(calls) == 1
+    sup.flow(0.0, 0.075)  # inline, on from the cut chain's first pair
+    assert [round(t, 6) for _, t in calls] == [0.025, 0.05, 0.075]
+    inline.flow(0.0, 0.075)
+    assert sup.inits == inline.inits and not sup._warm
+
+
+@pytest.mark.slow
+def test_a_run_stops_its_flow_worker_when_it_ends(demo_capture, tmp_path, monkeypatch):
+    """train() closes the prefetch worker however the run ends: with slow flows (40 ms a
+    pair: ~7 s of queued chains) a finished run leaves no worker thread behind."""
+    import threading
+    import time
+
+    from engine.train import train
+
+    real = SpikeFlowSupervision.estimate
+
+    def slow(self, *a, **k):
+        time.sleep(0.04)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(SpikeFlowSupervision, "estimate", slow)
+    summary = train(demo_capture, tmp_path / "run", preset="fast", overrides={**_TINY, "spike_flow_fit": False},
+                    resume=False)
+    assert summary["status"] == "finished"
+    assert not [t for t in threading.enumerate() if t.name == "bt4d-flow-prefetch"]

@@ -47,6 +47,7 @@ class FlowCache:
         ahead = int(getattr(self.cfg, "spike_flow_prefetch", 0))
         self._ahead = ahead
         self._worker = PriorityWorker("bt4d-flow-prefetch") if ahead > 0 else None
+        self._stopping = False  # close_flows: the worker's chain stops before its next pair
         self._queued = -1  # intervals [0, _queued] have their chains queued
 
     def frame_of(self, t: float) -> int:
@@ -77,6 +78,10 @@ class FlowCache:
             if prev is not None:
                 self.flow(t_ref, prev)
                 init = self._warm.pop((key[0], self.frame_of(prev)), None)
+            if self._stopping:  # on the worker, closing: what is cached stays valid (the chain resumes from it)
+                if init is not None:
+                    self._warm[(key[0], self.frame_of(prev))] = init
+                raise RuntimeError("spike-flow prefetch closed")
             fl, ok, back = self.estimate(t_ref, t, init)
             if more:  # only the latest pair of a chain is kept, for the next one
                 self._warm[key] = (fl, back)
@@ -104,12 +109,14 @@ class FlowCache:
         return self._queued
 
     def close_flows(self) -> None:
-        """Stop the worker: the chains not started are dropped, the running one is waited for
-        (one thread touches the cache at a time); later flows are computed inline."""
+        """Stop the worker: the chains not started are dropped, the running one stops before
+        its next pair and is waited for (one thread touches the cache at a time: a cancel waits
+        one DIS pair at most); later flows are computed inline, a cut chain from where it stopped."""
         if self._worker is not None:
+            self._stopping = True
             self._worker.close()
             self._worker.join()
-            self._worker = None
+            self._worker, self._stopping = None, False
 
     def grid_step(self, t: float) -> tuple[float, float, int, int]:
         """(a, b, q, n + 1): ``t``'s RGB interval [a, b] and its nearest grid index q, not clamped."""
