@@ -668,3 +668,31 @@ def test_a_run_stops_its_flow_worker_when_it_ends(demo_capture, tmp_path, monkey
                     resume=False)
     assert summary["status"] == "finished"
     assert not [t for t in threading.enumerate() if t.name == "bt4d-flow-prefetch"]
+
+
+def test_a_pair_the_step_needs_waits_for_one_queued_pair_at_most():
+    """The worker's jobs are single pairs in chain order: a step that needs a pair while the
+    worker is inside another chain waits for the pair being computed, then its own comes next
+    (before the rest of that chain), warm-started as inline."""
+    import threading
+
+    sup, calls = _fake_supervision(spike_flow_prefetch=1)
+    gate, first = threading.Event(), threading.Event()
+    est = sup.estimate
+
+    def estimate(*a, **k):
+        out = est(*a, **k)
+        if len(calls) == 1:
+            first.set()
+            gate.wait(10)
+        return out
+
+    sup.estimate = estimate
+    sup.prefetch(admitted=0.05)  # intervals 0 and 1: 12 pairs queued, the first one running
+    assert first.wait(10)
+    threading.Timer(0.05, gate.set).start()
+    sup.flow(0.1, 0.15)  # interval 1's chain from 0.1: 0.125, then 0.15
+    assert [(r, round(t, 6)) for r, t in calls[:3]] == [(0.0, 0.025), (0.1, 0.125), (0.1, 0.15)]
+    sup._worker.join(10)
+    assert len(calls) == 12 and np.allclose(sup.inits[2], (0.025, -0.025))
+    sup.close_flows()

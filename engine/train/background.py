@@ -5,7 +5,8 @@ The spike-view flow term (engine.train.spike_flow) needs DIS optical flows that 
 the spike stream only, never on the model: a data loader's work. Computed inside the step
 that first asks for them, they stalled that step (~150 ms for a chain of 15 pairs on the
 demo, 2 ms a guided step on average); on this worker they are computed while earlier steps
-run, on the core the training step leaves idle (a step on 2 cores keeps ~1.3 busy).
+run, on a core the training step leaves idle (README "The flows computed ahead of the steps":
+a gain where a core is free, neutral on 2 cores that the step's numba threads share).
 
 Rules, so that what the worker computes is what the step would have computed:
 
