@@ -1,6 +1,7 @@
 """engine.train.background.PriorityWorker: the spike-flow prefetch's one background thread."""
 from __future__ import annotations
 
+import sys
 import threading
 import time
 
@@ -97,3 +98,17 @@ def test_the_thread_exits_when_idle_and_a_new_job_starts_another():
     w.run("two", lambda: None)
     w.join(10)
     assert w.ran == ["one", "two"] and URGENT < 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_a_nice_worker_runs_its_jobs_at_a_lower_priority_than_the_caller():
+    import os
+
+    seen = []
+    w = PriorityWorker("nice-worker", nice=5)
+    w.run("p", lambda: seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id())))
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert seen == [min(19, mine + 5)]
+    plain = []
+    PriorityWorker("plain").run("p", lambda: plain.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id())))
+    assert plain == [mine]

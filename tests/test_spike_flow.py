@@ -348,7 +348,7 @@ def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
                                types.SimpleNamespace(stream=stream, sensor=None))
     seen = []
 
-    def pair(a, b, init, *, upsample=2, tol_px=0.5):
+    def pair(a, b, init, *, upsample=2, tol_px=0.5, parallel=None):
         seen.append(upsample)
         z = np.zeros(a.shape + (2,), np.float32)
         return z, z, np.ones(a.shape, bool)
@@ -696,3 +696,31 @@ def test_a_pair_the_step_needs_waits_for_one_queued_pair_at_most():
     sup._worker.join(10)
     assert len(calls) == 12 and np.allclose(sup.inits[2], (0.025, -0.025))
     sup.close_flows()
+
+
+def test_the_prefetch_worker_computes_both_flows_of_a_pair_on_its_own_low_priority_thread(monkeypatch):
+    """On the worker a pair's backward flow does not go to the pair thread (normal priority): both
+    flows run on the worker's thread at nice ``WORKER_NICE``; inline, the pair thread as before."""
+    from engine.train import spike_flow_cache as sfc
+
+    seen = []
+
+    def pair(a, b, init, *, upsample=2, tol_px=0.5, parallel=None):
+        seen.append(parallel)
+        z = np.zeros(a.shape + (2,), np.float32)
+        return z, z, np.ones(a.shape, bool)
+
+    monkeypatch.setattr(sfc, "warm_flow_pair", pair)
+    for ahead in (0, 2):
+        cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_prefetch": ahead})
+        view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
+        stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
+        sup = SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
+                                   types.SimpleNamespace(stream=stream, sensor=None))
+        sup.gray = lambda t: np.zeros((60, 80), np.float32)
+        sup.flow(0.1, 0.16)  # off the grid: one pair
+        assert (sup._worker is None) == (ahead == 0)
+        if ahead:
+            assert sup._worker.nice == sfc.WORKER_NICE == 19
+            sup.close_flows()
+    assert seen == [None, False]

@@ -17,9 +17,9 @@ cache holds the very arrays an inline computation gives (``tests/test_spike_flow
 flows and a bit-identical run). ``spike_flow_prefetch = 0`` computes inline, in the step, as
 before. Measured (README "The flows computed ahead of the steps"): inline, the flows were ~2 ms
 of a demo guided step (~6 %), each chain a ~150 ms stall of the step that first needed it. Ahead,
-1000 demo steps take 4.3 % less wall time when a core is free (the step on one numba thread,
-three of three alternated pairs); with the step on both of this machine's two cores the static
-stage pays what the guided stage saves (six pairs, +1.7 %, within the spread of single runs).
+on a worker at normal priority, 1000 demo steps took +1.7 % wall time on this 2-core machine (six
+alternated pairs: the static stage paid what the guided stage saved); on the worker at nice
+:data:`WORKER_NICE`, both flows of a pair on its thread, -5.4 % (16 pairs, 13 faster).
 
 Shapes: cached flow float16 [h, w, 2] (spike px), valid uint8 [h, w, 1]; ``sample_map`` reads
 both as float32.
@@ -33,10 +33,12 @@ from .background import PriorityWorker
 from .baselines import spike_to_gray
 from .spike_flow_pairs import RecentGreys, warm_flow_pair
 
-__all__ = ["GRAY_CACHE", "FLOW_DTYPE", "FlowCache"]
+__all__ = ["GRAY_CACHE", "FLOW_DTYPE", "WORKER_NICE", "FlowCache"]
 
 GRAY_CACHE = 64  # grey images the flow term keeps (spike_flow_pairs.RecentGreys); a miss recomputes one
 FLOW_DTYPE = torch.float16  # cached flows (every pair is kept for the run; README "The guided step's per-run work")
+# the prefetch worker's nice increment: it computes on what the step leaves idle (background.PriorityWorker)
+WORKER_NICE = 19
 
 
 class FlowCache:
@@ -50,7 +52,7 @@ class FlowCache:
         self._warm: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # chain ends (spike_flow_warm)
         ahead = int(getattr(self.cfg, "spike_flow_prefetch", 0))
         self._ahead = ahead
-        self._worker = PriorityWorker("bt4d-flow-prefetch") if ahead > 0 else None
+        self._worker = PriorityWorker("bt4d-flow-prefetch", nice=WORKER_NICE) if ahead > 0 else None
         self._stopping = False  # close_flows: the worker's chain stops before its next pair
         self._queued = -1  # intervals [0, _queued] have their chains queued
 
@@ -148,7 +150,9 @@ class FlowCache:
     def estimate(self, t_ref: float, t: float, init: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flow [h, w, 2], valid bool [h, w], backward flow [h, w, 2]) from the spike stream,
         warm-started from ``init`` (forward, backward) when given (the oracle script
-        ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion)."""
+        ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion). On the
+        prefetch worker both flows run on its own low-priority thread, not the pair thread."""
+        on_worker = self._worker is not None and self._worker.on_worker()
         fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, upsample=int(self.cfg.spike_flow_upsample),
-                                    tol_px=float(self.cfg.spike_flow_fb_tol))
+                                    tol_px=float(self.cfg.spike_flow_fb_tol), parallel=False if on_worker else None)
         return fw, ok, bw

@@ -93,14 +93,15 @@ def _pair_pool():
 
 
 def warm_flow_pair(gray_a: np.ndarray, gray_b: np.ndarray, init: tuple | None = None, *, upsample: int = 2,
-                   tol_px: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   tol_px: float = 0.5, parallel: bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(flow a -> b, flow b -> a, valid bool [h, w]) between two linear grey images [h, w].
     ``init``: (forward, backward) flows to start from (a warm start, mean normalisation off),
-    e.g. this function's flows to the instant one step closer to ``a``; None: from zero."""
+    e.g. this function's flows to the instant one step closer to ``a``; None: from zero.
+    ``parallel``: the backward flow on the pair thread (None: :data:`PARALLEL_PAIR`)."""
     a8, b8 = gray_to_u8(gray_a, gray_b)
     f0, b0 = (None, None) if init is None else init
     kw = {} if init is None else {"mean_normalization": False}
-    if PARALLEL_PAIR:
+    if PARALLEL_PAIR if parallel is None else parallel:
         back = _pair_pool().submit(dense_flow, b8, a8, upsample, 0, b0, **kw)
         fw = dense_flow(a8, b8, upsample, 0, f0, **kw)
         bw = back.result()
