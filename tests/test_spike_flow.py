@@ -335,28 +335,35 @@ def test_surface_is_found_and_reused_for_a_few_steps(every):
     assert len(renders) == 3
 
 
-@pytest.mark.parametrize("upsample", [1, 2])
-def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
-    """``spike_flow_upsample`` reaches the flow pair (DIS on the grey images upsampled that many
-    times): the term's flows are the ones the README's EPE figures measured."""
+def _dis_spy(monkeypatch, **over):
+    """A supervision with blank grey images whose flow pairs are recorded (their keyword
+    arguments) instead of computed: (supervision, list of kwargs dicts)."""
     from engine.train import spike_flow_cache as sfc
 
-    cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_upsample": upsample})
-    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
-        viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
+    cfg = get_preset("fast", {"spike_flow_weight": 1.0, **over})
+    view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
+    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
     sup = SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
                                types.SimpleNamespace(stream=stream, sensor=None))
     seen = []
 
-    def pair(a, b, init, *, upsample=2, tol_px=0.5, parallel=None):
-        seen.append(upsample)
+    def pair(a, b, init, **kw):
+        seen.append(kw)
         z = np.zeros(a.shape + (2,), np.float32)
         return z, z, np.ones(a.shape, bool)
 
     monkeypatch.setattr(sfc, "warm_flow_pair", pair)
     sup.gray = lambda t: np.zeros((60, 80), np.float32)
+    return sup, seen
+
+
+@pytest.mark.parametrize("upsample", [1, 2])
+def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
+    """``spike_flow_upsample`` reaches the flow pair (DIS on the grey images upsampled that many
+    times): the term's flows are the ones the README's EPE figures measured."""
+    sup, seen = _dis_spy(monkeypatch, spike_flow_upsample=upsample, spike_flow_prefetch=0)
     sup.estimate(0.1, 0.15)
-    assert seen == [upsample]
+    assert [kw["upsample"] for kw in seen] == [upsample]
 
 
 @pytest.mark.slow
@@ -703,24 +710,13 @@ def test_the_prefetch_worker_computes_both_flows_of_a_pair_on_its_own_low_priori
     flows run on the worker's thread at nice ``WORKER_NICE``; inline, the pair thread as before."""
     from engine.train import spike_flow_cache as sfc
 
-    seen = []
-
-    def pair(a, b, init, *, upsample=2, tol_px=0.5, parallel=None):
-        seen.append(parallel)
-        z = np.zeros(a.shape + (2,), np.float32)
-        return z, z, np.ones(a.shape, bool)
-
-    monkeypatch.setattr(sfc, "warm_flow_pair", pair)
+    parallel = []
     for ahead in (0, 2):
-        cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_prefetch": ahead})
-        view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
-        stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
-        sup = SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
-                                   types.SimpleNamespace(stream=stream, sensor=None))
-        sup.gray = lambda t: np.zeros((60, 80), np.float32)
+        sup, seen = _dis_spy(monkeypatch, spike_flow_prefetch=ahead)
         sup.flow(0.1, 0.16)  # off the grid: one pair
+        parallel += [kw["parallel"] for kw in seen]
         assert (sup._worker is None) == (ahead == 0)
         if ahead:
             assert sup._worker.nice == sfc.WORKER_NICE == 19
             sup.close_flows()
-    assert seen == [None, False]
+    assert parallel == [None, False]
