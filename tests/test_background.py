@@ -112,3 +112,30 @@ def test_a_nice_worker_runs_its_jobs_at_a_lower_priority_than_the_caller():
     plain = []
     PriorityWorker("plain").run("p", lambda: plain.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id())))
     assert plain == [mine]
+
+
+def test_interpreter_exit_closes_the_workers_and_waits_for_the_running_job(tmp_path):
+    """A process that leaves a worker with queued jobs exits cleanly: at exit the queue is dropped
+    and the running job finishes before Python finalizes (a daemon thread killed inside OpenCV
+    aborted the test process: "FATAL: exception not rethrown")."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = f"""
+import sys, time, pathlib
+sys.path.insert(0, {str(root)!r})
+from engine.train.background import PriorityWorker
+out = pathlib.Path({str(tmp_path)!r})
+w = PriorityWorker("exit-test", nice=19)
+def job(i):
+    time.sleep(0.2)
+    (out / f"{{i}}").write_text("done")
+for i in range(50):
+    w.submit(i, lambda i=i: job(i), priority=i)
+time.sleep(0.1)
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    done = sorted(int(p.name) for p in tmp_path.iterdir())
+    assert done == [0]  # the running job finished, the 49 queued ones were dropped

@@ -28,16 +28,30 @@ over 16, on a 2-core machine).
 """
 from __future__ import annotations
 
+import atexit
 import heapq
 import itertools
 import os
 import sys
 import threading
+import weakref
 from typing import Callable, Hashable
 
 __all__ = ["URGENT", "PriorityWorker"]
 
 URGENT = -1  # priority of a job a caller waits for (run)
+_LIVE: "weakref.WeakSet[PriorityWorker]" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_all() -> None:
+    """At interpreter exit, close every worker and wait for its running job. A daemon thread still
+    inside OpenCV when Python finalizes is unwound by force and the process aborts ("FATAL:
+    exception not rethrown"): a Trainer made without ``train()`` (tests, scripts) leaves its flow
+    worker running, and at nice 19 behind a busy process it is still running at exit."""
+    for w in list(_LIVE):
+        w.close()
+        w.join(60.0)
 
 
 class _Job:
@@ -62,6 +76,7 @@ class PriorityWorker:
         self._thread: threading.Thread | None = None
         self._closed = False
         self.ran: list = []  # keys in the order they ran (tests, diagnostics)
+        _LIVE.add(self)
 
     def on_worker(self) -> bool:
         """True on the worker's own thread (a job that needs another result computes it itself)."""
