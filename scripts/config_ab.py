@@ -23,6 +23,7 @@ from engine.cli.train import parse_overrides  # noqa: E402
 from engine.io.capture import load_capture  # noqa: E402
 from engine.train.budget import warm_up_runtime  # noqa: E402
 from engine.train.presets import get_preset  # noqa: E402
+from engine.train.spike_flow import close_flow_worker  # noqa: E402
 from engine.train.trainer import Trainer  # noqa: E402
 
 
@@ -56,8 +57,7 @@ def main(argv=None) -> None:
             wall[st] = wall.get(st, 0.0) + time.perf_counter() - w0
             cpu[st] = cpu.get(st, 0.0) + time.process_time() - c0
             n[st] = n.get(st, 0) + 1
-        if getattr(tr, "spike_flow", None) is not None:
-            tr.spike_flow.close_flows()
+        close_flow_worker(tr)
         parts = ", ".join(f"{st} {1e3 * wall[st] / n[st]:.1f} ms (cpu {1e3 * cpu[st] / n[st]:.1f})" for st in n)
         print(f"{args.key}={raw}: {parts}, run {time.perf_counter() - t_run:.1f} s", flush=True)
 

@@ -156,13 +156,17 @@ def test_loss_gradient_is_in_the_image_plane():
     assert float((g * ray).sum(1).abs().max()) < 1e-6 * float(g.norm(dim=1).max()) + 1e-9
 
 
+def _bare_supervision(**over) -> SpikeFlowSupervision:
+    """The term on a fake 80 x 60 spike stream at the identity pose, RGB instants KNOTS."""
+    cfg = get_preset("fast", {"spike_flow_weight": 1.0, **over})
+    view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
+    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
+    return SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
+                                types.SimpleNamespace(stream=stream, sensor=None))
+
+
 def _fake_supervision(steps=3, **over):
-    cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_flow_steps": steps, **over})
-    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: types.SimpleNamespace(
-        viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3)))
-    guid = types.SimpleNamespace(stream=stream, sensor=None)
-    tr = types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu"))
-    sup = SpikeFlowSupervision(tr, guid)
+    sup = _bare_supervision(spike_flow_steps=steps, **over)
     calls = []
 
     def estimate(t_ref, t, init=None):
@@ -340,11 +344,7 @@ def _dis_spy(monkeypatch, **over):
     arguments) instead of computed: (supervision, list of kwargs dicts)."""
     from engine.train import spike_flow_cache as sfc
 
-    cfg = get_preset("fast", {"spike_flow_weight": 1.0, **over})
-    view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
-    stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
-    sup = SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
-                               types.SimpleNamespace(stream=stream, sensor=None))
+    sup = _bare_supervision(**over)
     seen = []
 
     def pair(a, b, init, **kw):

@@ -34,6 +34,7 @@ from .budget import (
     warm_up_runtime,
 )
 from .presets import TrainConfig, get_preset
+from .spike_flow import close_flow_worker
 from .trainer import LOSS_FACTORIES, LossFactory, Trainer, capture_path
 
 __all__ = ["train"]
@@ -240,9 +241,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                         error=f"{exc.__class__.__name__}: {exc}")
         raise
     finally:  # the spike-flow term's prefetch worker: what it has not started is not needed now
-        flow = getattr(trainer, "spike_flow", None)
-        if flow is not None:
-            flow.close_flows()
+        close_flow_worker(trainer)
     train_seconds = prior_seconds + time.perf_counter() - t_start
     snapshot(step, status, train_seconds)
     skips = trainer.skip_summary()

@@ -47,17 +47,17 @@ from ..scene import trajectory as traj
 from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
-from .spike_flow_cache import FLOW_DTYPE, GRAY_CACHE, FlowCache
+from .spike_flow_cache import FlowCache
 from .spike_flow_pairs import flow_pair, forward_backward_valid, gray_to_u8, warm_flow_pair
 from .spike_guidance import admitted_time, spike_view_guidance
 from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
 
-__all__ = ["JUNCTION_MODES", "FLOW_DTYPE", "GRAY_CACHE", "gray_to_u8", "dense_flow", "forward_backward_valid",
-           "flow_pair", "warm_flow_pair",
+__all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "warm_flow_pair",
            "sample_map", "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals",
-           "inner_only_positions", "subset_positions", "SpikeFlowSupervision", "spike_flow_factory"]
+           "inner_only_positions", "subset_positions", "SpikeFlowSupervision", "spike_flow_factory",
+           "close_flow_worker"]
 
 
 # ------------------------------------------------------------------------------ functional
@@ -395,8 +395,6 @@ class SpikeFlowSupervision(FlowCache):
         b, model = hit
         tr = ctx.trainer
         admitted = admitted_time(ctx, self.times[-1])
-        if tr is self.trainer:
-            self.prefetch(admitted)
         pair = self.instants(float(b["instant"].time), admitted)
         if pair is None:
             return None
@@ -442,3 +440,11 @@ def spike_flow_factory(trainer) -> list:
     if hooks is not None:
         hooks.append(term.after_step)
     return [LossTerm("spike_flow", float(cfg.spike_flow_weight), term, stages=("deform",))]
+
+
+def close_flow_worker(trainer) -> None:
+    """Stop the prefetch worker of ``trainer``'s flow term, if it has one (the end of a run, a
+    benchmark's run before the next: :meth:`FlowCache.close_flows`)."""
+    term = getattr(trainer, "spike_flow", None)
+    if term is not None:
+        term.close_flows()
