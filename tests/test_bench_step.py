@@ -40,6 +40,22 @@ def test_step_profile_charges_every_part_and_restores_the_patches(capture):
     assert "| field_bwd |" in md and "guided_deform" not in md
 
 
+def test_trajectory_curves_are_charged_to_the_field_rows(capture):
+    """The default motion model (per-Gaussian curves): its evaluations and their backward are
+    the field rows, not "other" (they read 0 there before)."""
+    from engine.scene import trajectory
+
+    before = (trajectory._CurveAt.forward, trajectory._CurveAt.backward)
+    prof, _ = bench_step.profile_runs(capture, 12, overrides={"init": "ply", "static_fraction": 0.25,
+                                                              "motion": "trajectory"}, spike=False)
+    assert (trajectory._CurveAt.forward, trajectory._CurveAt.backward) == before
+    static, deform = prof.table("static"), prof.table("rgb_deform")
+    assert static["ms"]["field_fwd"] == 0 and static["ms"]["field_bwd"] == 0
+    assert deform["ms"]["field_fwd"] > 0 and deform["ms"]["field_bwd"] > 0
+    assert sum(deform["ms"].values()) == pytest.approx(deform["step_ms"], rel=1e-6)
+    assert deform["ms"]["other"] >= 0
+
+
 def test_variants_profile_both_code_paths_in_one_process(capture, monkeypatch):
     from engine.scene.deformation import HexPlane
 

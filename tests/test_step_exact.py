@@ -70,7 +70,8 @@ def test_default_training_is_bit_for_bit_before_the_flow_and_curve_kernels(befor
     warm_up_runtime("cpu")
     added = []  # the curves' backward kernels that added into a gradient already there
     k = trajectory.KERNELS.module
-    for name, adds in (("curve_at_backward", lambda a: a[-1]), ("residual_sq_backward_add", lambda a: True)):
+    for name, adds in (("curve_at_backward", lambda a: a[-1]), ("residual_sq_backward_add", lambda a: True),
+                       ("curve_at_backward_rows", lambda a: a[-1]), ("residual_sq_backward_rows", lambda a: a[-1])):
         kernel = getattr(k, name)
         monkeypatch.setattr(k, name, lambda *a, _k=kernel, _a=adds: (_a(a) and added.append(1), _k(*a))[1])
     cap = load_capture(demo_capture)

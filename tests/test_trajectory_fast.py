@@ -200,3 +200,39 @@ def test_curve_kernels_are_the_column_ops_bit_for_bit(c, dtype, monkeypatch):
     # a non-contiguous tensor keeps the torch path (same numbers)
     q = p0.transpose(0, 1).contiguous().transpose(0, 1)
     assert not q.is_contiguous() and torch.equal(evaluate(q, knots, 0.05), evaluate(p0, knots, 0.05))
+
+
+@pytest.mark.parametrize("c,dtype", [(3, torch.float32), (4, torch.float64)])
+def test_threaded_curve_and_residual_kernels_are_the_serial_ones_bit_for_bit(c, dtype, monkeypatch):
+    """The row-parallel drivers (trajectory.PARALLEL, curves of PARALLEL_MIN floats and more):
+    the curves' values and gradients, written fresh and summed in place (gradient_sink), and
+    the residual term's value and gradient equal the serial kernels' bit for bit."""
+    from engine.scene import trajectory
+
+    knots = KNOT_SETS["seven"]
+    g = torch.Generator().manual_seed(c)
+    p0 = torch.randn(501, num_controls(len(knots)), c, generator=g, dtype=dtype)
+    p0 *= 10.0 ** torch.randint(-4, 4, p0.shape, generator=g).to(dtype)
+    w = torch.randn(501, c, generator=g, dtype=dtype)
+    module = trajectory.KERNELS.load()
+    called = []
+    for name in ("curve_at_rows", "curve_at_backward_rows", "residual_sq_rows", "residual_sq_backward_rows"):
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _r=real, _n=name: (called.append(_n), _r(*a))[1])
+    monkeypatch.setattr(trajectory, "PARALLEL_MIN", 0)
+    got = []
+    for threaded in (False, True):
+        monkeypatch.setattr(trajectory, "PARALLEL", threaded)
+        outs = []
+        for sink in (False, True):
+            p = p0.clone().requires_grad_(True)
+            loss = sum((evaluate(p, knots, t) * w).sum() for t in (0.5 * (knots[1] + knots[2]), knots[3], 0.11))
+            sq = inner_residual_sq(p)
+            loss = loss + (sq * torch.arange(sq.numel(), dtype=dtype).reshape(sq.shape)).sum()
+            with trajectory.gradient_sink() if sink else torch.enable_grad():
+                loss.backward()
+            outs += [sq.detach(), p.grad]
+        got.append(outs)
+    assert set(called) == {"curve_at_rows", "curve_at_backward_rows", "residual_sq_rows", "residual_sq_backward_rows"}
+    for a, b in zip(*got):
+        assert torch.equal(a, b)

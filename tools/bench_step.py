@@ -7,10 +7,13 @@ and charges each step's *exclusive* wall time to its parts (:class:`StepProfiler
 * ``raster_fwd``: ``engine.raster.rasterization`` as ``Model4D.render`` calls it (projection,
   SH, binning, compositing);
 * ``raster_bwd``: the numba autograd functions' backward (compositing, projection, SH);
-* ``field_fwd``: ``DeformationField.forward`` (HexPlane sampling + decoder), fine branch excluded;
+* ``field_fwd``: the motion model's forward: the per-Gaussian trajectories' curve evaluations
+  (``trajectory._CurveAt``, the spike-view flow term's row subset ``spike_flow._InnerAt``) and
+  ``DeformationField.forward`` (HexPlane sampling + decoder), fine branch excluded;
 * ``fine_fwd``: the spike branch's fine encoder / fine deformation forward;
-* ``field_bwd``: from the gradient reaching the field's outputs until every field parameter
-  has its gradient (autograd hooks; the fine branch's backward runs inside it);
+* ``field_bwd``: the curve evaluations' backward, and from the gradient reaching the HexPlane
+  field's outputs until every field parameter has its gradient (autograd hooks; the fine
+  branch's backward runs inside it);
 * ``losses``: the loss terms' forward (``LossTerm.fn``; the spike branch's targets included);
 * ``optimizer``: every ``Adam.step``;
 * ``densify``: densification statistics, densify-and-prune, opacity reset;
@@ -42,7 +45,7 @@ from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
-from engine.scene import fused_adam, selective_adam, trajectory
+from engine.scene import fused_adam, grad_buffers, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
@@ -171,6 +174,11 @@ class StepProfiler:
         self._wrap(Trainer, "_carry_forward", "admit")
         for cls in (torch.optim.Adam, fused_adam.FusedAdam, selective_adam.SelectiveAdam):
             self._wrap(cls, "step", "optimizer")
+        # the trajectories are the default motion model: without these the field rows read 0
+        # and the curves' ~2.5 ms of an RGB step sat in "other" (and "losses")
+        for cls in (trajectory._CurveAt, spike_flow._InnerAt):
+            self._wrap(cls, "forward", "field_fwd", static=True)
+            self._wrap(cls, "backward", "field_bwd", static=True)
 
         orig_forward = DeformationField.forward
         prof = self
@@ -366,6 +374,15 @@ VARIANTS = {
     "sink-off": {"doc": "every reader of the curves returns its own full [N, K, C] gradient and autograd sums "
                         "them, as before trajectory.gradient_sink (same numbers)", "hexplane_sampler": "auto",
                  "patches": {(trajectory, "SINK"): False}},
+    "grad-fresh": {"doc": "the curves' gradient a fresh full [N, K, C] tensor at every step's first reader, as "
+                          "before engine.scene.grad_buffers (same numbers)", "hexplane_sampler": "auto",
+                   "patches": {(grad_buffers, "ENABLED"): False}},
+    "curves-serial": {"doc": "the curve and residual kernels on one thread, as before their row-parallel drivers "
+                             "(trajectory.PARALLEL; same numbers)", "hexplane_sampler": "auto",
+                      "patches": {(trajectory, "PARALLEL"): False}},
+    "long-before": {"doc": "grad-fresh and curves-serial together: the curves' step before the work for long "
+                           "captures (same numbers)", "hexplane_sampler": "auto",
+                    "patches": {(grad_buffers, "ENABLED"): False, (trajectory, "PARALLEL"): False}},
     "refresh-before": {"doc": "the guided step's per-run caches refreshed as before: the flow term's visible-surface "
                               "sets every 10 steps, the quiet curves' mask every 10 (spike_flow_surface_every, "
                               "quiet_curves_refresh; now 30 and 50)", "hexplane_sampler": "auto",

@@ -9,66 +9,98 @@ autograd backward ``grad * (2 * d)``; tests compare bit for bit.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ..numba_cache import install_cache_locator
 
 install_cache_locator(__name__)
 
 
+# Each kernel's work is independent per row: a row function shared by a serial driver (the name
+# the callers knew) and a parallel one over numba's threads (``*_rows``), the same arithmetic per
+# entry, so the same numbers. The curves are strided reads and writes of a few columns per row,
+# bound by memory latency: two threads keep twice the misses in flight (README, "A longer capture").
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _residual_sq_row(params, out, r):
+    segs, C = out.shape[1], params.shape[2]
+    nonzero = False
+    for i in range(segs):
+        for j in range(2):
+            x = params[r, 3 * i + 1 + j, 0]
+            nonzero |= x != 0
+            acc = x * x
+            for c in range(1, C):
+                x = params[r, 3 * i + 1 + j, c]
+                nonzero |= x != 0
+                acc = acc + x * x
+            out[r, i, j] = acc
+    return nonzero
+
+
 @njit(cache=True, nogil=True)
 def residual_sq(params, out):
     """``out[n, i, j] = sum_c params[n, 3 i + 1 + j, c] ** 2`` ([N, F - 1, 2]); returns
     whether any residual is nonzero (its square may underflow to 0: the values are tested)."""
-    n, segs = out.shape[0], out.shape[1]
-    C = params.shape[2]
     nonzero = False
-    for r in range(n):
-        for i in range(segs):
-            for j in range(2):
-                x = params[r, 3 * i + 1 + j, 0]
-                nonzero |= x != 0
-                acc = x * x
-                for c in range(1, C):
-                    x = params[r, 3 * i + 1 + j, c]
-                    nonzero |= x != 0
-                    acc = acc + x * x
-                out[r, i, j] = acc
+    for r in range(out.shape[0]):
+        nonzero |= _residual_sq_row(params, out, r)
     return nonzero
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def residual_sq_rows(params, out):
+    """:func:`residual_sq` on numba's threads."""
+    rows = 0
+    for r in prange(out.shape[0]):
+        rows += 1 if _residual_sq_row(params, out, r) else 0
+    return rows > 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _residual_sq_backward_row(params, grad, out, r, add):
+    K, C = params.shape[1], params.shape[2]
+    segs = grad.shape[1]
+    if not add:
+        for c in range(C):
+            out[r, K - 1, c] = 0.0
+    for i in range(segs):
+        if not add:
+            for c in range(C):
+                out[r, 3 * i, c] = 0.0
+        for j in range(2):
+            gr = grad[r, i, j]
+            for c in range(C):
+                x = params[r, 3 * i + 1 + j, c]
+                if add:
+                    out[r, 3 * i + 1 + j, c] = out[r, 3 * i + 1 + j, c] + gr * (x + x)
+                else:
+                    out[r, 3 * i + 1 + j, c] = gr * (x + x)  # x + x: 2 x exactly, in x's dtype
 
 
 @njit(cache=True, nogil=True)
 def residual_sq_backward(params, grad, out):
     """``out`` [N, K, C] (every entry written): ``grad[n, i, j] * (2 * d)`` at the residual
     entries, zero at the junctions."""
-    n, K, C = params.shape
-    segs = grad.shape[1]
-    for r in range(n):
-        for c in range(C):
-            out[r, K - 1, c] = 0.0
-        for i in range(segs):
-            for c in range(C):
-                out[r, 3 * i, c] = 0.0
-            for j in range(2):
-                gr = grad[r, i, j]
-                for c in range(C):
-                    x = params[r, 3 * i + 1 + j, c]
-                    out[r, 3 * i + 1 + j, c] = gr * (x + x)  # x + x: 2 x exactly, in x's dtype
+    for r in range(params.shape[0]):
+        _residual_sq_backward_row(params, grad, out, r, False)
 
 
 @njit(cache=True, nogil=True)
 def residual_sq_backward_add(params, grad, out):
     """``out += residual_sq_backward``'s gradient, at the residual entries only (the junctions'
     zeros added change nothing): autograd's sum of the two, bit for bit (trajectory.sunk)."""
-    n, K, C = params.shape
-    segs = grad.shape[1]
-    for r in range(n):
-        for i in range(segs):
-            for j in range(2):
-                gr = grad[r, i, j]
-                for c in range(C):
-                    x = params[r, 3 * i + 1 + j, c]
-                    out[r, 3 * i + 1 + j, c] = out[r, 3 * i + 1 + j, c] + gr * (x + x)
+    for r in range(params.shape[0]):
+        _residual_sq_backward_row(params, grad, out, r, True)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def residual_sq_backward_rows(params, grad, out, add):
+    """:func:`residual_sq_backward` (``add`` False) or :func:`residual_sq_backward_add` (True)
+    on numba's threads."""
+    for r in prange(params.shape[0]):
+        _residual_sq_backward_row(params, grad, out, r, add)
 
 
 @njit(cache=True, nogil=True)
@@ -90,17 +122,42 @@ def all_finite(x):
 # backward's columns are ``grad * w_j``, everything else zero.
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _curve_row(params, cols, weights, out, r):
+    C, m = out.shape[1], cols.size
+    for c in range(C):
+        acc = params[r, cols[0], c] * weights[0]
+        for j in range(1, m):
+            acc = acc + params[r, cols[j], c] * weights[j]
+        out[r, c] = acc
+
+
 @njit(cache=True, nogil=True)
 def curve_at(params, cols, weights, out):
     """``out[n, c] = sum_j params[n, cols[j], c] * weights[j]`` (j ascending)."""
-    n, C = out.shape
-    m = cols.size
-    for r in range(n):
+    for r in range(out.shape[0]):
+        _curve_row(params, cols, weights, out, r)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def curve_at_rows(params, cols, weights, out):
+    """:func:`curve_at` on numba's threads."""
+    for r in prange(out.shape[0]):
+        _curve_row(params, cols, weights, out, r)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _curve_backward_row(grad, cols, weights, out, add, r):
+    K, C = out.shape[1], out.shape[2]
+    if not add:
+        for k in range(K):
+            for c in range(C):
+                out[r, k, c] = 0.0
+    for j in range(cols.size):
+        col, w = cols[j], weights[j]
         for c in range(C):
-            acc = params[r, cols[0], c] * weights[0]
-            for j in range(1, m):
-                acc = acc + params[r, cols[j], c] * weights[j]
-            out[r, c] = acc
+            x = grad[r, c] * w
+            out[r, col, c] = out[r, col, c] + x if add else x
 
 
 @njit(cache=True, nogil=True)
@@ -108,18 +165,15 @@ def curve_at_backward(grad, cols, weights, out, add):
     """Without ``add``: ``out`` [N, K, C] = ``grad * weights[j]`` in column ``cols[j]``, zero
     elsewhere (every entry written; the columns are distinct). With ``add``: that gradient
     added into ``out``, columns ``cols`` only (autograd's sum of the two; trajectory.sunk)."""
-    n, K, C = out.shape
-    m = cols.size
-    for r in range(n):
-        if not add:
-            for k in range(K):
-                for c in range(C):
-                    out[r, k, c] = 0.0
-        for j in range(m):
-            col, w = cols[j], weights[j]
-            for c in range(C):
-                x = grad[r, c] * w
-                out[r, col, c] = out[r, col, c] + x if add else x
+    for r in range(out.shape[0]):
+        _curve_backward_row(grad, cols, weights, out, add, r)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def curve_at_backward_rows(grad, cols, weights, out, add):
+    """:func:`curve_at_backward` on numba's threads."""
+    for r in prange(out.shape[0]):
+        _curve_backward_row(grad, cols, weights, out, add, r)
 
 
 # ---- a row subset of the curves at one instant, inner columns only: spike_flow._InnerAt -------

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from ..numba_cache import LazyKernels
+from . import grad_buffers
 
 KERNELS = LazyKernels(__package__, "_trajectory_kernels")  # the residual-square term's numba pair
 
@@ -116,6 +117,11 @@ def junctions(params: torch.Tensor) -> torch.Tensor:
     return params[:, 0::3]
 
 
+def inner_columns(n_controls: int) -> list[int]:
+    """The inner control points' columns ``3 i + 1``, ``3 i + 2`` of a curve with ``n_controls``."""
+    return [c for c in range(int(n_controls) - 1) if c % 3]
+
+
 def inner_residuals(params: torch.Tensor) -> torch.Tensor:
     """The inner control points' residuals ``D``: [N, F - 1, 2, C]."""
     n, k, c = params.shape
@@ -154,20 +160,30 @@ def gradient_sink():
         _SINK = prev
 
 
-def sunk(params, write_full, add_into):
+def sunk(params, write_full, add_into, cols=None):
     """What a reader's backward returns for the curves ``params``: ``write_full()`` (a fresh
     full gradient) outside :func:`gradient_sink` or when ``params`` is not a CPU leaf whose
     ``.grad`` was None when this backward began; otherwise None, after setting ``.grad`` to
-    ``write_full()`` (first reader) or calling ``add_into(params.grad)`` (later readers)."""
+    the leaf's reused zero buffer with ``add_into`` applied (:mod:`engine.scene.grad_buffers`;
+    ``write_full()`` when it cannot have one) for the first reader, or calling
+    ``add_into(params.grad)`` (later readers). ``cols``: the columns ``add_into`` writes
+    (None: any), which the buffer zeroes again before the next step's first reader."""
     state = _SINK
     if state is None or params is None or not params.is_leaf or params.device.type != "cpu":
         return write_full()
     if id(params) in state:
+        grad_buffers.mark(params, cols)
         add_into(params.grad)
         return None
     if params.grad is not None:  # a gradient from before this backward: autograd sums as it would
         return write_full()
-    params.grad = write_full()
+    if grad_buffers.usable(params):
+        buf = grad_buffers.take(params)
+        grad_buffers.mark(params, cols)
+        add_into(buf)
+        params.grad = buf
+    else:
+        params.grad = write_full()
     state[id(params)] = params
     return None
 
@@ -189,7 +205,7 @@ class _ResidualSq(torch.autograd.Function):
         k = KERNELS.module
         p = params.detach().numpy()
         out = np.empty((p.shape[0], (p.shape[1] - 1) // 3, 2), p.dtype)
-        ctx.nonzero = bool(k.residual_sq(p, out))
+        ctx.nonzero = bool((k.residual_sq_rows if _threaded(p) else k.residual_sq)(p, out))
         ctx.save_for_backward(params)
         ctx.leaf = params if params.is_leaf else None  # gradient_sink's key
         return torch.from_numpy(out)
@@ -208,9 +224,32 @@ class _ResidualSq(torch.autograd.Function):
         def full():
             out = np.empty_like(p)
             # what autograd computes for ``d ** 2`` (pow's backward: grad * (2 * d)), bit for bit
-            KERNELS.module.residual_sq_backward(p, gr, out)
+            _residual_backward(p, gr, out, False)
             return torch.from_numpy(out)
-        return sunk(ctx.leaf, full, lambda g: KERNELS.module.residual_sq_backward_add(p, gr, g.numpy()))
+        return sunk(ctx.leaf, full, lambda g: _residual_backward(p, gr, g.numpy(), True), inner_columns(p.shape[1]))
+
+
+# False: the curve and residual kernels run on one thread (bench-step's "curves-serial"); True: on
+# numba's threads once a curve has PARALLEL_MIN floats (the same numbers: rows are independent)
+PARALLEL = True
+PARALLEL_MIN = 1 << 16
+
+
+def _threaded(curves: np.ndarray) -> bool:
+    return PARALLEL and curves.size >= PARALLEL_MIN
+
+
+def _residual_backward(p, gr, out, add: bool) -> None:
+    k = KERNELS.module
+    if _threaded(p):
+        k.residual_sq_backward_rows(p, gr, out, add)
+    else:
+        (k.residual_sq_backward_add if add else k.residual_sq_backward)(p, gr, out)
+
+
+def _curve_backward(gr, cols, w, out, add: bool) -> None:
+    k = KERNELS.module
+    (k.curve_at_backward_rows if _threaded(out) else k.curve_at_backward)(gr, cols, w, out, add)
 
 
 def _all_finite(x: torch.Tensor) -> bool:
@@ -311,8 +350,10 @@ class _CurveAt(torch.autograd.Function):
         ctx.fused = _fused_curves(params)
         if ctx.fused:  # one pass over the rows (_trajectory_kernels.curve_at), same numbers
             out = params.new_empty(params.shape[0], params.shape[2])
-            KERNELS.module.curve_at(params.detach().numpy(), np.asarray(cols, np.int64),
-                                    np.asarray(weights, _NP_DTYPE[params.dtype]), out.numpy())
+            p = params.detach().numpy()
+            k = KERNELS.module
+            (k.curve_at_rows if _threaded(p) else k.curve_at)(p, np.asarray(cols, np.int64),
+                                                              np.asarray(weights, _NP_DTYPE[params.dtype]), out.numpy())
             return out
         out = None
         for c, w in zip(cols, weights):
@@ -329,16 +370,18 @@ class _CurveAt(torch.autograd.Function):
 
             def full():
                 g = torch.empty(ctx.shape, dtype=grad.dtype)
-                KERNELS.module.curve_at_backward(gr, cols, w, g.numpy(), False)
+                _curve_backward(gr, cols, w, g.numpy(), False)
                 return g
-            return sunk(ctx.leaf, full, lambda g: KERNELS.module.curve_at_backward(gr, cols, w, g.numpy(), True)), \
+            return sunk(ctx.leaf, full, lambda g: _curve_backward(gr, cols, w, g.numpy(), True),
+                        ctx.cols), \
                 None, None
 
         def columns(g, add: bool):  # the same by torch ops: written into a zero gradient, or added
             for c, w in zip(ctx.cols, ctx.weights):
                 g[:, c].add_(torch.mul(grad, w)) if add else torch.mul(grad, w, out=g[:, c])
             return g
-        return sunk(ctx.leaf, lambda: columns(grad.new_zeros(ctx.shape), False), lambda g: columns(g, True)), None, None
+        return sunk(ctx.leaf, lambda: columns(grad.new_zeros(ctx.shape), False), lambda g: columns(g, True),
+                    ctx.cols), None, None
 
 
 _NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}
@@ -429,4 +472,10 @@ def warmup() -> float:
         k.curve_at_backward(g, cols, w, x, True)
         k.inner_at(x, g, idx, cols, w, g.copy())  # the spike-view flow term's subset (spike_flow._InnerAt)
         k.inner_at_backward(g, idx, cols, w, x)
+        # the threaded drivers (curves of PARALLEL_MIN floats and more)
+        r = np.empty((3, 2, 2), np.float32)
+        k.residual_sq_rows(x, r)
+        k.residual_sq_backward_rows(x, r, x.copy(), True)
+        k.curve_at_rows(x, cols, w, g)
+        k.curve_at_backward_rows(g, cols, w, x, True)
     return time.perf_counter() - t0

@@ -94,13 +94,14 @@ class _InnerAt(torch.autograd.Function):
             a = (grad.detach().contiguous().numpy(), idx.numpy(), np.asarray(ctx.cols, np.int64),
                  np.asarray(ctx.weights, _NP[grad.dtype]))
             return traj.sunk(ctx.leaf, lambda: traj.zeros_then(traj.KERNELS.module.inner_at_backward, ctx.shape, *a),
-                             lambda g: traj.KERNELS.module.inner_at_backward(*a, g.numpy())), None, None, None, None
+                             lambda g: traj.KERNELS.module.inner_at_backward(*a, g.numpy()), ctx.cols), \
+                None, None, None, None
         def add(g):  # torch ops; each entry gets ``0 + grad * w``, as a zero gradient's index_add_ gives it
             for c, w in zip(ctx.cols, ctx.weights):
                 if c % 3:
                     g[:, c].index_add_(0, idx, torch.mul(grad, w).add_(0.0))
             return g
-        return traj.sunk(ctx.leaf, lambda: add(grad.new_zeros(ctx.shape)), add), None, None, None, None
+        return traj.sunk(ctx.leaf, lambda: add(grad.new_zeros(ctx.shape)), add, ctx.cols), None, None, None, None
 
 
 _NP = {torch.float32: np.float32, torch.float64: np.float64}
