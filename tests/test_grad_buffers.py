@@ -97,6 +97,7 @@ def test_a_dead_leaf_s_buffer_is_dropped():
     assert len(grad_buffers._BUFFERS) == 1
     del p
     gc.collect()
+    assert not grad_buffers._BUFFERS  # with its leaf, not at the next take
     q = _curves(1)
     _backward(q, [0.1])
     assert len(grad_buffers._BUFFERS) == 1 and next(iter(grad_buffers._BUFFERS.values())).leaf() is q

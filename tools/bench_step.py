@@ -392,10 +392,6 @@ VARIANTS = {
     "quiet-mul": {"doc": "the quiet curves' inner points zeroed by multiplying the whole curves by a mask, as "
                          "before quiet_curves.FUSED_ZERO (same numbers)", "hexplane_sampler": "auto",
                   "patches": {(quiet_curves, "FUSED_ZERO"): False}},
-    "long-before": {"doc": "grad-fresh, curves-serial and quiet-mul together: the curves' step before the work "
-                           "for long captures (same numbers)", "hexplane_sampler": "auto",
-                    "patches": {(grad_buffers, "ENABLED"): False, (trajectory, "PARALLEL"): False,
-                                (quiet_curves, "FUSED_ZERO"): False}},
     "refresh-before": {"doc": "the guided step's per-run caches refreshed as before: the flow term's visible-surface "
                               "sets every 10 steps, the quiet curves' mask every 10 (spike_flow_surface_every, "
                               "quiet_curves_refresh; now 30 and 50)", "hexplane_sampler": "auto",
@@ -407,6 +403,10 @@ VARIANTS = {
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
 }
+VARIANTS["long-before"] = {"doc": "grad-fresh, curves-serial and quiet-mul together: the curves' step before the work "
+                                  "for long captures (same numbers)", "hexplane_sampler": "auto",
+                           "patches": {k: v for name in ("grad-fresh", "curves-serial", "quiet-mul")
+                                       for k, v in VARIANTS[name]["patches"].items()}}
 
 
 @contextmanager

@@ -21,7 +21,7 @@ written by a kernel could hold -0.0, which Adam treats alike).
 
 A buffer set as a leaf's ``.grad`` is valid until the next backward that reaches that leaf:
 whoever wants a step's gradient later must copy it. The buffer lives as long as its leaf
-(densification's new parameters get new buffers; a dead leaf's entry is dropped).
+(densification's new parameters get new buffers; a leaf's entry is dropped when the leaf dies).
 """
 from __future__ import annotations
 
@@ -79,12 +79,12 @@ def take(leaf: torch.Tensor) -> torch.Tensor:
     """``leaf``'s gradient buffer, every entry zero (:func:`usable` leaves only)."""
     e = _BUFFERS.get(id(leaf))
     if e is None or e.leaf() is not leaf or e.buf.shape != leaf.shape or e.buf.dtype != leaf.dtype:
-        for key in [k for k, v in _BUFFERS.items() if v.leaf() is None]:
-            del _BUFFERS[key]
         fresh = e is None or e.leaf() is not leaf
         e = _BUFFERS[id(leaf)] = _Buffer(leaf)
         if fresh:  # once per leaf: a hook registered again would stay on it as well
             leaf.register_hook(_Hook(e))
+            # the buffer goes with its leaf (a finished run's model), not at the next run's first take
+            weakref.finalize(leaf, _drop, id(leaf), weakref.ref(e))
         return e.buf
     e.clean()
     return e.buf
@@ -101,6 +101,12 @@ class _Hook:
         e = _BUFFERS.get(self.key)
         if e is not None:
             e.foreign(grad)
+
+
+def _drop(key: int, entry) -> None:
+    e = entry()
+    if e is not None and _BUFFERS.get(key) is e:
+        del _BUFFERS[key]
 
 
 def mark(leaf: torch.Tensor, cols) -> None:
