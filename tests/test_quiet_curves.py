@@ -68,29 +68,6 @@ def test_zero_inner_clears_only_the_quiet_segments_inner_points():
     assert torch.equal(again, p) and inner_keep(quiet, 4).shape == (3, 7, 4)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_fused_zero_inner_is_the_mask_multiply_bit_for_bit(dtype, monkeypatch):
-    """The numba pass over the quiet entries (quiet_curves.FUSED_ZERO) against the whole-curve
-    multiply by inner_keep: signed zeros, inf -> nan and nan included."""
-    from engine.train import quiet_curves
-
-    g = torch.Generator().manual_seed(1)
-    p0 = torch.randn(200, 3 * 9 + 1, 4, generator=g, dtype=dtype)
-    p0[3, 1, 0], p0[5, 2, 1], p0[7, 4, 2], p0[9, 0, 0] = float("inf"), float("-inf"), float("nan"), float("inf")
-    quiet = torch.rand(200, 9, generator=g) < 0.6
-    quiet[3, 0] = quiet[5, 0] = quiet[7, 1] = True
-    got = []
-    for fused in (False, True):
-        monkeypatch.setattr(quiet_curves, "FUSED_ZERO", fused)
-        p = p0.clone()
-        zero_inner(p, quiet)
-        got.append(p)
-    assert torch.equal(got[0].isnan(), got[1].isnan()) and got[1][3, 1, 0].isnan()
-    a, b = (x.nan_to_num(0.0) for x in got)
-    assert torch.equal(a, b) and torch.equal(torch.signbit(a), torch.signbit(b))
-    assert torch.signbit(got[1][~quiet[:, 0], 0]).sum() == torch.signbit(p0[~quiet[:, 0], 0]).sum()
-
-
 def test_tie_junctions_holds_a_run_of_quiet_segments_at_its_mean_and_nothing_else():
     quiet = torch.tensor([[True, True, False], [False, False, False], [False, True, True]])
     assert junction_groups(quiet).view(3, 4).tolist() == [[0, 0, 0, 1], [4, 5, 6, 7], [8, 9, 9, 9]]

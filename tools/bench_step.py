@@ -49,16 +49,7 @@ from engine.scene import fused_adam, grad_buffers, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import (
-    fused_ssim,
-    interpolation,
-    losses,
-    quiet_curves,
-    scene_flow,
-    spike_flow,
-    spike_flow_pairs,
-    spike_guidance,
-)
+from engine.train import fused_ssim, interpolation, losses, scene_flow, spike_flow, spike_flow_pairs, spike_guidance
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -389,9 +380,6 @@ VARIANTS = {
     "curves-serial": {"doc": "the curve and residual kernels on one thread, as before their row-parallel drivers "
                              "(trajectory.PARALLEL; same numbers)", "hexplane_sampler": "auto",
                       "patches": {(trajectory, "PARALLEL"): False}},
-    "quiet-mul": {"doc": "the quiet curves' inner points zeroed by multiplying the whole curves by a mask, as "
-                         "before quiet_curves.FUSED_ZERO (same numbers)", "hexplane_sampler": "auto",
-                  "patches": {(quiet_curves, "FUSED_ZERO"): False}},
     "refresh-before": {"doc": "the guided step's per-run caches refreshed as before: the flow term's visible-surface "
                               "sets every 10 steps, the quiet curves' mask every 10 (spike_flow_surface_every, "
                               "quiet_curves_refresh; now 30 and 50)", "hexplane_sampler": "auto",
@@ -403,9 +391,9 @@ VARIANTS = {
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
 }
-VARIANTS["long-before"] = {"doc": "grad-fresh, curves-serial and quiet-mul together: the curves' step before the work "
-                                  "for long captures (same numbers)", "hexplane_sampler": "auto",
-                           "patches": {k: v for name in ("grad-fresh", "curves-serial", "quiet-mul")
+VARIANTS["long-before"] = {"doc": "grad-fresh and curves-serial together: the curves' step before the work for long "
+                                  "captures (same numbers)", "hexplane_sampler": "auto",
+                           "patches": {k: v for name in ("grad-fresh", "curves-serial")
                                        for k, v in VARIANTS[name]["patches"].items()}}
 
 

@@ -212,19 +212,3 @@ def inner_at_backward(grad, idx, cols, weights, out):
             r = idx[m]
             for c in range(C):
                 out[r, col, c] = out[r, col, c] + (0.0 + grad[m, c] * w)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def zero_quiet_inner(params, quiet):
-    """``params[n, 3 s + 1 : 3 s + 3] *= 0`` where ``quiet[n, s]`` (bool [N, F - 1]), in place:
-    ``params *= quiet_curves.inner_keep(quiet)`` bit for bit (``x * 1`` is ``x``; ``x * 0`` keeps
-    the sign of zero and turns inf into nan as the multiply does) without reading or writing the
-    entries the mask keeps."""
-    n, segs = quiet.shape
-    C = params.shape[2]
-    for r in prange(n):
-        for s in range(segs):
-            if quiet[r, s]:
-                for j in range(1, 3):
-                    for c in range(C):
-                        params[r, 3 * s + j, c] = params[r, 3 * s + j, c] * 0.0

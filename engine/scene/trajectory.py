@@ -478,5 +478,4 @@ def warmup() -> float:
         k.residual_sq_backward_rows(x, r, x.copy(), True)
         k.curve_at_rows(x, cols, w, g)
         k.curve_at_backward_rows(g, cols, w, x, True)
-        k.zero_quiet_inner(x, np.zeros((3, 2), np.bool_))  # engine.train.quiet_curves.zero_inner
     return time.perf_counter() - t0

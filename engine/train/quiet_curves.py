@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import torch
 
-from ..scene import trajectory as traj
 from ..scene.fine_deformation import project_to_grid
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS
 from .spike_guidance import spike_stream_info
@@ -101,25 +100,11 @@ def inner_keep(quiet: torch.Tensor, channels: int = 1) -> torch.Tensor:
     return keep[..., None].expand(n, 3 * s + 1, int(channels)).contiguous()
 
 
-# False: zero_inner multiplies the whole curves by inner_keep's mask (bench-step's "quiet-mul"); True:
-# a numba pass over the quiet segments' entries only, the same numbers (README, "A longer capture")
-FUSED_ZERO = True
-
-
-def _fused_zero(params: torch.Tensor) -> bool:
-    return (FUSED_ZERO and params.device.type == "cpu" and params.is_contiguous()
-            and params.dtype in (torch.float32, torch.float64) and traj.KERNELS.load() is not None)
-
-
 @torch.no_grad()
 def zero_inner(params: torch.Tensor, quiet: torch.Tensor, keep: torch.Tensor | None = None) -> None:
     """Set the inner control points ``3k+1, 3k+2`` of ``params`` [N, K, C] to zero in the rows
-    where ``quiet`` [N, F-1] holds for segment ``k`` (in place, as ``params * inner_keep(quiet)``:
-    a negative point becomes -0.0; ``keep``: its :func:`inner_keep`, when already built, for the
-    torch path)."""
-    if _fused_zero(params):
-        traj.KERNELS.module.zero_quiet_inner(params.data.numpy(), quiet.cpu().numpy())
-        return
+    where ``quiet`` [N, F-1] holds for segment ``k`` (in place; ``keep``: its
+    :func:`inner_keep`, when already built)."""
     params.data.mul_(inner_keep(quiet) if keep is None else keep)
 
 
@@ -197,9 +182,9 @@ class QuietCurves:
             keeps["groups"] = junction_groups(quiet)
         for params in (getattr(g, TRAJ_MEANS), getattr(g, TRAJ_QUATS)):
             c = int(params.shape[-1])
-            if c not in keeps and not _fused_zero(params):
+            if c not in keeps:
                 keeps[c] = inner_keep(quiet, c)
-            zero_inner(params, quiet, keeps.get(c))
+            zero_inner(params, quiet, keeps[c])
             if tie:
                 tie_junctions(params, keeps["groups"])
 
