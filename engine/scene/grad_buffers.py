@@ -25,9 +25,9 @@ whoever wants a step's gradient later must copy it. The buffer lives as long as 
 """
 from __future__ import annotations
 
+import functools
 import weakref
 
-import numpy as np
 import torch
 
 # False: every step's first reader writes a fresh full gradient, as before (bench-step "grad-fresh")
@@ -41,7 +41,7 @@ MIN_BYTES = 32 << 20
 
 
 class _Buffer:
-    __slots__ = ("leaf", "buf", "dirty", "all_dirty", "__weakref__")
+    __slots__ = ("leaf", "buf", "dirty", "all_dirty")
 
     def __init__(self, leaf: torch.Tensor):
         self.leaf = weakref.ref(leaf)
@@ -49,14 +49,9 @@ class _Buffer:
         self.dirty: set[int] = set()
         self.all_dirty = False
 
-    def foreign(self, grad):
-        """Tensor hook of the leaf: a gradient that did not come through ``sunk`` (None when
-        every reader of this backward summed in place) may be anywhere in the buffer."""
-        if grad is not None:
-            self.all_dirty = True
-
     def clean(self) -> None:
         b = self.buf
+        # past half the columns, one contiguous zero_ instead of a strided write per row and column
         if self.all_dirty or len(self.dirty) * 2 > b.shape[1]:
             b.zero_()
         elif self.dirty:
@@ -65,7 +60,7 @@ class _Buffer:
         self.all_dirty = False
 
 
-_BUFFERS: dict[int, _Buffer] = {}
+_BUFFERS: dict[int, _Buffer] = {}  # id(leaf) -> its buffer
 
 
 def usable(leaf: torch.Tensor) -> bool:
@@ -77,35 +72,31 @@ def usable(leaf: torch.Tensor) -> bool:
 
 def take(leaf: torch.Tensor) -> torch.Tensor:
     """``leaf``'s gradient buffer, every entry zero (:func:`usable` leaves only)."""
-    e = _BUFFERS.get(id(leaf))
+    key = id(leaf)
+    e = _BUFFERS.get(key)
     if e is None or e.leaf() is not leaf or e.buf.shape != leaf.shape or e.buf.dtype != leaf.dtype:
-        fresh = e is None or e.leaf() is not leaf
-        e = _BUFFERS[id(leaf)] = _Buffer(leaf)
-        if fresh:  # once per leaf: a hook registered again would stay on it as well
-            leaf.register_hook(_Hook(e))
+        if e is None or e.leaf() is not leaf:  # once per leaf: a hook registered again would stay on it too
+            leaf.register_hook(functools.partial(_foreign, key))
             # the buffer goes with its leaf (a finished run's model), not at the next run's first take
-            weakref.finalize(leaf, _drop, id(leaf), weakref.ref(e))
+            weakref.finalize(leaf, _drop, key)
+        e = _BUFFERS[key] = _Buffer(leaf)
         return e.buf
     e.clean()
     return e.buf
 
 
-class _Hook:
-    """The leaf's hook, holding its buffer weakly (the hook lives on the leaf; the buffer's
-    entry may be replaced if the leaf's shape changed)."""
-
-    def __init__(self, e: _Buffer):
-        self.key = id(e.leaf())
-
-    def __call__(self, grad):
-        e = _BUFFERS.get(self.key)
-        if e is not None:
-            e.foreign(grad)
+def _foreign(key: int, grad) -> None:
+    """Tensor hook of a leaf with a buffer: a gradient that did not come through ``sunk`` (None
+    when every reader of this backward summed in place) may be anywhere in the buffer."""
+    e = _BUFFERS.get(key)
+    if grad is not None and e is not None:
+        e.all_dirty = True
 
 
-def _drop(key: int, entry) -> None:
-    e = entry()
-    if e is not None and _BUFFERS.get(key) is e:
+def _drop(key: int) -> None:
+    """The leaf ``key`` died (its weak references are cleared before this runs)."""
+    e = _BUFFERS.get(key)
+    if e is not None and e.leaf() is None:
         del _BUFFERS[key]
 
 
@@ -117,7 +108,7 @@ def mark(leaf: torch.Tensor, cols) -> None:
     if cols is None:
         e.all_dirty = True
     else:
-        e.dirty.update(int(c) for c in np.asarray(cols).reshape(-1))
+        e.dirty.update(map(int, cols))
 
 
 def clear() -> None:
