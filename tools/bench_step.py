@@ -45,7 +45,7 @@ from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
-from engine.scene import fused_adam, grad_buffers, selective_adam, trajectory
+from engine.scene import fused_adam, grad_buffers, lazy_adam, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
@@ -172,7 +172,7 @@ class StepProfiler:
         for name in ("add_densification_stats", "densify_and_prune", "reset_opacity"):
             self._wrap(GaussianModel, name, "densify")
         self._wrap(Trainer, "_carry_forward", "admit")
-        for cls in (torch.optim.Adam, fused_adam.FusedAdam, selective_adam.SelectiveAdam):
+        for cls in (torch.optim.Adam, fused_adam.FusedAdam, selective_adam.SelectiveAdam, lazy_adam.LazyCurveAdam):
             self._wrap(cls, "step", "optimizer")
         # the trajectories are the default motion model: without these the field rows read 0
         # and the curves' ~2.5 ms of an RGB step sat in "other" (and "losses")
@@ -335,6 +335,9 @@ VARIANTS = {
     "adam-selective": {"doc": "gaussian_adam=selective: only the rows the step's renders see and the curve "
                               "columns its times read (engine.scene.selective_adam)", "hexplane_sampler": "auto",
                        "overrides": {"gaussian_adam": "selective"}},
+    "adam-lazy": {"doc": "gaussian_adam=lazy: the curves' touched columns only, their skipped steps caught up "
+                         "(engine.scene.lazy_adam)", "hexplane_sampler": "auto",
+                  "overrides": {"gaussian_adam": "lazy"}},
     "adam-serial": {"doc": "FusedAdam's one-pass update of a large parameter on one thread (fused_adam.PARALLEL="
                            "False), as before its runs of blocks on numba's threads (same numbers)",
                     "hexplane_sampler": "auto", "patches": {(fused_adam, "PARALLEL"): False}},

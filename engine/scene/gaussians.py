@@ -10,12 +10,14 @@ rebuilds the tensors and carries Adam's moments (new rows start at zero), as 3DG
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 import torch
 from torch import nn
 
 from .fused_adam import FusedAdam
+from .lazy_adam import LazyCurveAdam
 from .selective_adam import SelectiveAdam
 
 SH_C0 = 0.28209479177387814
@@ -90,6 +92,10 @@ def knn_mean_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> to
 
 def inverse_sigmoid(x):
     return torch.log(x / (1 - x))
+
+
+# GaussianModel -> [weak bound methods]: on_settle's callbacks, outside the module (deepcopy)
+_SETTLE_HOOKS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 class GaussianModel(nn.Module):
@@ -193,10 +199,16 @@ class GaussianModel(nn.Module):
         groups += [{"params": [getattr(self, n)], "lr": self._extra_lr(n), "name": n} for n in self.extra_lrs]
         # FusedAdam: torch's Adam bit for bit; SelectiveAdam: only the rows the step's renders
         # saw (and the curve columns they read) move (engine.scene.selective_adam)
+        # LazyCurveAdam: the curves' touched columns only, their skipped steps caught up; "auto"
+        # for curves of at least lazy_min_columns columns (engine.scene.lazy_adam)
         opt = getattr(cfg, "gaussian_adam", "exact")
-        if opt not in ("exact", "selective"):
-            raise ValueError(f"unknown gaussian_adam {opt!r}; choose exact or selective")
-        self.optimizer = (SelectiveAdam if opt == "selective" else FusedAdam)(groups, lr=0.0, eps=1e-15)
+        if opt not in ("exact", "selective", "lazy", "auto"):
+            raise ValueError(f"unknown gaussian_adam {opt!r}; choose exact, selective, lazy or auto")
+        if opt in ("lazy", "auto"):
+            least = int(getattr(cfg, "lazy_min_columns", 0)) if opt == "auto" else 0
+            self.optimizer = LazyCurveAdam(groups, min_columns=least, lr=0.0, eps=1e-15)
+        else:
+            self.optimizer = (SelectiveAdam if opt == "selective" else FusedAdam)(groups, lr=0.0, eps=1e-15)
         self._lr_means = (cfg.lr_means * self.extent, cfg.lr_means_final * self.extent)
 
     def update_learning_rate(self, progress: float) -> float:
@@ -267,6 +279,7 @@ class GaussianModel(nn.Module):
     def densify_and_prune(self, *, grad_threshold: float, percent_dense: float, min_opacity: float,
                           max_world_scale: float, max_gaussians: int, generator: torch.Generator | None = None) -> dict:
         """3DGS clone / split / prune. Returns counts {cloned, split, pruned, total}."""
+        self.settle()  # the new rows copy the parameters: a lazy optimiser's skipped moves first
         with torch.no_grad():
             grads = self.grad_accum / self.grad_count.clamp_min(1)
             big = self.scales.max(dim=1).values > percent_dense * self.extent
@@ -325,6 +338,7 @@ class GaussianModel(nn.Module):
         m = int(rows["means"].shape[0])
         if m == 0:
             return 0
+        self.settle()
         with torch.no_grad():
             new = {n: torch.cat([getattr(self, n).detach(), rows[n].to(getattr(self, n))]) for n in self.param_names}
             self._replace(new, None, m)
@@ -335,6 +349,7 @@ class GaussianModel(nn.Module):
 
     def prune(self, mask: torch.Tensor) -> None:
         """Remove rows where ``mask`` is True."""
+        self.settle()
         keep = ~mask
         new = {n: getattr(self, n).detach()[keep] for n in self.param_names}
         self._replace(new, keep, 0)
@@ -352,8 +367,29 @@ class GaussianModel(nn.Module):
                     st["exp_avg_sq"].zero_()
 
     # ------------------------------------------------------------------ (de)serialisation
+    def settle(self) -> None:
+        """Bring a lazy optimiser's curves up to its last step (engine.scene.lazy_adam): before
+        anything reads or writes the parameters other than a training step's renders. Then the
+        :meth:`on_settle` callbacks (a constraint to re-apply: QuietCurves)."""
+        settle = getattr(self.optimizer, "settle", None)
+        if settle is None:
+            return
+        settle()
+        for ref in list(_SETTLE_HOOKS.get(self, ())):
+            fn = ref()
+            if fn is not None:
+                fn(self)
+
+    def on_settle(self, fn) -> None:
+        """Call the bound method ``fn(gaussians)`` after every :meth:`settle` (held weakly, and
+        not by the model: a deep copy of it, the budget probe's, carries none)."""
+        hooks = _SETTLE_HOOKS.setdefault(self, [])
+        if not any(r() == fn for r in hooks):
+            hooks.append(weakref.WeakMethod(fn))
+
     def state(self) -> dict:
         """Everything needed to rebuild the model and its optimiser exactly."""
+        self.settle()
         return {
             "params": {n: getattr(self, n).detach().cpu() for n in self.param_names},
             "extra_lrs": dict(self.extra_lrs),

@@ -24,6 +24,7 @@ import torch
 from ..raster import warmup as raster_warmup
 from ..scene.fused_adam import warmup as adam_warmup
 from ..scene.hexplane_fused import warmup as hexplane_warmup
+from ..scene.lazy_adam import warmup as lazy_warmup
 from ..scene.selective_adam import warmup as selective_warmup
 from ..scene.trajectory import warmup as trajectory_warmup
 from .fused_ssim import warmup as ssim_warmup
@@ -158,6 +159,7 @@ def warm_up_runtime(device) -> float:
         adam_warmup()  # the Gaussians' optimizer's kernels and its exactness check (engine.scene.fused_adam)
         trajectory_warmup()  # the trajectories' residual-square term (engine.scene.trajectory)
         selective_warmup()  # gaussian_adam=selective's kernels (engine.scene.selective_adam)
+        lazy_warmup()  # gaussian_adam=lazy / auto's kernels (engine.scene.lazy_adam)
         ssim_warmup()  # the D-SSIM term's kernels (engine.train.fused_ssim)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
     return time.perf_counter() - t0

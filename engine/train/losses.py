@@ -174,7 +174,12 @@ def _traj_reg(ctx: StepContext):
     m = ctx.trainer.model
     if m.trajectory is None or not m.use_deformation:
         return None
-    sq = inner_residual_sq(getattr(m.gaussians, TRAJ_MEANS))
+    opt, curve = m.gaussians.optimizer, getattr(m.gaussians, TRAJ_MEANS)
+    if getattr(opt, "lazy_for", None) is not None and opt.lazy_for(curve):
+        # a lazy optimiser adds the prior's gradient on the columns it updates (engine.scene.lazy_adam)
+        opt.inner_decay[TRAJ_MEANS] = float(ctx.trainer.cfg.traj_inner_weight) / ctx.trainer.extent ** 2
+        return None
+    sq = inner_residual_sq(curve)
     if sq.numel() == 0:
         return None
     return sq.mean() / ctx.trainer.extent ** 2

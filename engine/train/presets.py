@@ -42,7 +42,13 @@ class TrainConfig:
     # SelectiveAdam / Taming 3DGS, engine.scene.selective_adam). Not the default: 1000 fast steps,
     # seeds 0 / 1, demo / between / fast, moving pixels at the train views -0.43 / -0.16 / -0.31 dB
     # (eval views +0.22 / -0.03 / -0.12) for an RGB step 1.09x faster (README, Selective Adam)
-    gaussian_adam: str = "exact"
+    # | lazy (the curves' touched columns, each caught up on the steps it skipped: dense Adam to
+    # rounding, the skipped momentum landing at the next touch; engine.scene.lazy_adam) | auto
+    # (lazy for curves of at least lazy_min_columns columns, FusedAdam below: README, "Lazy curve Adam")
+    gaussian_adam: str = "auto"
+    # gaussian_adam=auto: curves of at least this many control-point columns (K = 3 (F - 1) + 1 for F
+    # RGB instants) take the lazy step (engine.scene.lazy_adam), shorter ones FusedAdam's
+    lazy_min_columns: int = 40
 
     # ---- densification (3DGS rules, schedule in fractions of `iterations`) ---------------
     densify_from: float = 0.05

@@ -148,6 +148,7 @@ class QuietCurves:
         self.change = change
         # (step, N, quiet [N, F-1], {channels: inner_keep(quiet, channels)}, id of the curves' tensor)
         self._mask: tuple | None = None
+        self._applied: tuple | None = None  # (mask, optimiser settles) of the last whole application
         self.last: dict = {}
 
     def intervals(self, knots) -> list:
@@ -174,9 +175,26 @@ class QuietCurves:
         model = tr.model
         if model is None or model.trajectory is None or not model.use_deformation:
             return
-        quiet = self.mask(model, step)
-        keeps = self._mask[3]
+        self.mask(model, step)
         g = model.gaussians
+        # a lazy optimiser (engine.scene.lazy_adam) moved only the columns its step updated since
+        # the mask was last applied whole, unless a settle moved them all: zero those alone
+        settles = getattr(g.optimizer, "settles", None)
+        now = (self._mask[0], self._mask[1], self._mask[4], settles)
+        self._apply(g, local=settles is not None and self._applied == now)
+        self._applied = now
+        if settles is not None:
+            g.on_settle(self.after_settle)
+
+    def after_settle(self, g) -> None:
+        """A lazy optimiser's settle moved every column (the skipped steps' momentum): hold the
+        quiet segments at zero again before anyone reads them (a checkpoint, densification)."""
+        hit = self._mask
+        if hit is not None and hit[1] == g.num_gaussians and hit[4] == id(getattr(g, TRAJ_MEANS)):
+            self._apply(g, local=False)
+
+    def _apply(self, g, local: bool) -> None:
+        quiet, keeps = self._mask[2], self._mask[3]
         tie = bool(self.cfg.quiet_junctions)
         if tie and "groups" not in keeps:
             keeps["groups"] = junction_groups(quiet)
@@ -184,6 +202,11 @@ class QuietCurves:
             c = int(params.shape[-1])
             if c not in keeps:
                 keeps[c] = inner_keep(quiet, c)
+            cols = g.optimizer.last_columns(params) if local and not tie else None
+            if cols is not None:  # column by column: a view each (an index tensor's copy and scatter: ~8 ms)
+                for col in cols[cols % 3 != 0].tolist():
+                    params.data[:, col].mul_(keeps[c][:, col])
+                continue
             zero_inner(params, quiet, keeps[c])
             if tie:
                 tie_junctions(params, keeps["groups"])

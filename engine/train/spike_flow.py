@@ -131,6 +131,8 @@ def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.T
         return g.means.detach()[idx] + traj.evaluate(sub, knots, t)
     traj._check(params, traj._knots(knots))
     cols, weights = zip(*traj.segment_weights(knots, t))
+    if params.requires_grad and torch.is_grad_enabled():
+        traj._note_touched(params.shape[1], [c for c in cols if c % 3])  # the inner ones get its gradient
     return _InnerAt.apply(params, g.means.detach()[idx], idx, cols, weights)
 
 
@@ -242,6 +244,7 @@ class SpikeFlowSupervision(FlowCache):
         Gaussians within ``traj_carry_hidden`` x extent of them that the spike view does not
         see (inside or behind the surface) take their nearest one's change. Returns counts."""
 
+        model.gaussians.settle()  # a lazy optimiser's skipped moves land before the fit writes
         a, b = self.times[k], self.times[k + 1]
         n = max(1, int(self.cfg.spike_flow_steps))
         us = torch.arange(1, n + 1, dtype=torch.float32) / (n + 1)

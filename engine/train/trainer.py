@@ -339,12 +339,12 @@ class Trainer:
                     p[:, :, c + 1:, :] = p[:, :, c:c + 1, :]
 
     def _carry_trajectories(self, last: float) -> None:
-        """Knots after ``last`` start at constant velocity (``traj_carry=velocity``), hold
-        (``hold``), or where optical flow + per-instant stereo put each Gaussian (``flow``,
-        engine.train.scene_flow; constant velocity for what it cannot see)."""
-        knots = self.model.trajectory["knots"]
+        """Knots after ``last`` start at constant velocity (``traj_carry=velocity``), hold (``hold``), or where
+        optical flow + per-instant stereo put each Gaussian (``flow``, engine.train.scene_flow; constant velocity
+        for what it cannot see). A lazy optimiser's skipped moves land first (engine.scene.lazy_adam)."""
+        knots, g = self.model.trajectory["knots"], self.model.gaussians
         li = int(np.argmin([abs(k - last) for k in knots]))
-        g = self.model.gaussians
+        g.settle()
         mode = "velocity" if self.cfg.traj_carry == "flow" else self.cfg.traj_carry
         extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=mode)
         extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")

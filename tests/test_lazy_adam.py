@@ -1,0 +1,298 @@
+"""LazyCurveAdam (engine.scene.lazy_adam): FusedAdam bit for bit when every curve column is
+touched at every step; dense Adam to rounding after the skipped steps are caught up; the
+numba kernels against the plain-torch reference; untouched columns left alone until a touch
+or ``settle``; densification, checkpoints and the curriculum's carry settle first."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from engine.scene import fused_adam, lazy_adam, trajectory
+from engine.scene.fused_adam import FusedAdam
+from engine.scene.gaussians import GaussianModel
+from engine.scene.lazy_adam import LazyCurveAdam
+from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
+from engine.train.presets import get_preset
+
+N, K = 1031, 19
+SHAPES = [(N, 3), (N, K, 3), (N, K, 4)]  # one plain group, two curves
+
+
+def _params(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.nn.Parameter(torch.randn(s, generator=g) * 10.0 ** -i) for i, s in enumerate(SHAPES)]
+
+
+def _opts(a, b):
+    groups = lambda ps: [{"params": [p], "lr": 10.0 ** -(i + 1), "name": f"g{i}"} for i, p in enumerate(ps)]  # noqa: E731
+    dense = FusedAdam(groups(a), lr=0.0, eps=1e-15)
+    lazy = LazyCurveAdam(groups(b), lr=0.0, eps=1e-15)
+    lazy.curves.update({"g1", "g2"})
+    return dense, lazy
+
+
+def _run(steps: int, touch, seed=3):
+    """``steps`` steps of both optimizers on the same gradients, zero outside the columns
+    ``touch(step)`` (and a decaying learning rate, as the trainer's)."""
+    a, b = _params(), _params()
+    dense, lazy = _opts(a, b)
+    rng = np.random.default_rng(seed)
+    for step in range(steps):
+        cols = touch(step, rng)
+        for opt in (dense, lazy):
+            for i, grp in enumerate(opt.param_groups):
+                grp["lr"] = 10.0 ** -(i + 1) * 0.995 ** step
+        gen = torch.Generator().manual_seed(100 + step)
+        for pa, pb in zip(a, b):
+            gr = torch.randn(pa.shape, generator=gen) * (torch.rand(pa.shape, generator=gen) < 0.7)
+            if pa.dim() == 3:
+                keep = torch.zeros(K, dtype=torch.bool)
+                keep[cols] = True
+                gr[:, ~keep] = 0.0
+            pa.grad, pb.grad = gr.clone(), gr.clone()
+        trajectory._note_touched(K, cols)
+        dense.step()
+        lazy.step()
+    return a, b, dense, lazy
+
+
+def test_every_column_touched_is_fused_adam_bit_for_bit():
+    assert fused_adam.exact()
+    a, b, dense, lazy = _run(6, lambda s, r: list(range(K)))
+    for pa, pb in zip(a, b):
+        assert torch.equal(pa, pb)
+        for key in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(dense.state[pa][key], lazy.state[pb][key])
+
+
+def test_sparse_touches_caught_up_equal_dense_adam_to_rounding():
+    touch = lambda s, r: sorted(set(r.choice(K, size=int(r.integers(1, 5)), replace=False).tolist()))  # noqa: E731
+    a, b, dense, lazy = _run(200, touch)
+    assert not torch.equal(a[1], b[1])  # before settle: skipped columns have not moved yet
+    lazy.settle()
+    assert torch.equal(a[0], b[0])  # the plain group is FusedAdam's
+    for i, (pa, pb) in enumerate(zip(a, b)):
+        if i == 0:
+            continue
+        moved = (pa - _params()[i]).abs().max()
+        assert float((pa - pb).detach().abs().max()) < 1e-4 * float(moved.detach())
+        for key in ("exp_avg", "exp_avg_sq"):
+            x, y = dense.state[pa][key], lazy.state[pb][key]
+            assert float((x - y).abs().max()) <= 1e-5 * float(x.abs().max())
+
+
+def test_kernels_match_the_torch_reference():
+    touch = lambda s, r: sorted(set(r.choice(K, size=int(r.integers(1, 4)), replace=False).tolist()))  # noqa: E731
+    _, fused, _, lf = _run(60, touch)
+    lf.settle()
+    lazy_adam.FUSED = False
+    try:
+        _, ref, _, lr_ = _run(60, touch)
+        lr_.settle()
+    finally:
+        lazy_adam.FUSED = True
+    for x, y in zip(fused, ref):
+        np.testing.assert_allclose(x.detach().numpy(), y.detach().numpy(), rtol=1e-6, atol=1e-7)
+
+
+def test_untouched_columns_wait_until_touched_or_settled():
+    a, b, dense, lazy = _run(5, lambda s, r: list(range(K)))
+    p = b[1]
+    before = p.detach().clone()
+    m_before = lazy.state[p]["exp_avg"].clone()
+    gr = torch.zeros_like(p)
+    gr[:, 3] = 1.0
+    p.grad = gr
+    for q in (b[0], b[2]):
+        q.grad = torch.zeros_like(q)
+    trajectory._note_touched(K, [3])
+    lazy.step()
+    others = [c for c in range(K) if c != 3]
+    assert torch.equal(p.detach()[:, others], before[:, others])
+    assert torch.equal(lazy.state[p]["exp_avg"][:, others], m_before[:, others])
+    assert not torch.equal(p.detach()[:, 3], before[:, 3])
+    lazy.settle()  # one skipped step: every other column coasts on its momentum once
+    assert not torch.equal(p.detach()[:, others], before[:, others])
+    assert lazy._cols[id(p)][1].tolist() == [6] * K
+
+
+def test_no_touched_record_updates_every_column():
+    a, b, dense, lazy = _run(3, lambda s, r: [0])
+    lazy.settle()
+    for pa, pb in ((a[1], b[1]),):
+        pa.grad = torch.ones_like(pa)
+        pb.grad = torch.ones_like(pb)
+    for q in (a[0], a[2], b[0], b[2]):
+        q.grad = None
+    trajectory.clear_touched()  # a plain autograd reader: no record
+    dense.step()
+    lazy.step()
+    assert lazy.last_touched == K
+    assert float((a[1] - b[1]).detach().abs().max()) < 1e-6
+
+
+def _model(cfg, n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-1, 1, size=(n, 3)) * [1.5, 1.0, 0.3] + [0, 0, 4.0]
+    g = GaussianModel(pts, rng.uniform(size=(n, 3)))
+    g.setup_optimizer(cfg, 1.0)
+    m = Model4D(g)
+    m.add_trajectories([0.0, 0.1, 0.2, 0.3], 1e-3, 1e-3)
+    m.use_deformation = True
+    return m
+
+
+def _view(t):
+    K_ = torch.tensor([[[40.0, 0, 24.0], [0, 40.0, 16.0], [0, 0, 1]]])
+    return {"viewmat": torch.eye(4)[None], "K": K_, "width": 48, "height": 32, "time": t, "campos": torch.zeros(3)}
+
+
+def _train_steps(m, times):
+    g = m.gaussians
+    for t in times:
+        g.optimizer.zero_grad(set_to_none=True)
+        rgb, _, _, _ = m.render(_view(t))
+        rgb.mean().backward()
+        g.optimizer.step()
+
+
+def test_renders_touch_their_columns_and_pruning_settles_first():
+    m = _model(get_preset("fast", {"gaussian_adam": "lazy"}))
+    g = m.gaussians
+    opt = g.optimizer
+    assert isinstance(opt, LazyCurveAdam) and {TRAJ_MEANS, TRAJ_QUATS} <= opt.curves
+    _train_steps(m, [0.1, 0.15, 0.1])  # an RGB instant reads one junction; 0.15 a whole segment
+    tm = getattr(g, TRAJ_MEANS)
+    assert opt.last_touched == 2  # the last step: junction 3 of both curves
+    at = opt._cols[id(tm)][1]
+    # t = 0.15 read segment 1 (columns 4, 5) and through the tangents the junctions 0, 3, 6, 9
+    assert at[3] == 3 and at[0] == at[4] == at[6] == at[9] == 2 and at[1] == at[7] == 0
+    # densification's row surgery brings every column up first
+    keep = torch.ones(g.num_gaussians, dtype=torch.bool)
+    keep[:10] = False
+    settled = _model(get_preset("fast", {"gaussian_adam": "lazy"}))
+    _train_steps(settled, [0.1, 0.15, 0.1])
+    settled.gaussians.settle()
+    g.prune(~keep)
+    ref = getattr(settled.gaussians, TRAJ_MEANS).detach()[keep]
+    assert torch.equal(getattr(g, TRAJ_MEANS).detach(), ref)
+    now = getattr(g, TRAJ_MEANS).detach().clone()
+    opt.settle()  # the new tensor starts with every column current: nothing left to catch up
+    assert torch.equal(getattr(g, TRAJ_MEANS).detach(), now)
+
+
+def test_a_checkpoint_is_settled():
+    m = _model(get_preset("fast", {"gaussian_adam": "lazy"}))
+    _train_steps(m, [0.1, 0.15, 0.1])
+    ref = _model(get_preset("fast", {"gaussian_adam": "lazy"}))
+    _train_steps(ref, [0.1, 0.15, 0.1])
+    ref.gaussians.settle()
+    st = m.state()
+    assert torch.equal(st["gaussians"]["params"][TRAJ_MEANS], getattr(ref.gaussians, TRAJ_MEANS).detach())
+
+
+def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit():
+    """gaussian_adam=auto with curves under lazy_min_columns: the same numbers as exact (the
+    prior stays a loss term, every column moves at every step, the quiet hook applies whole)."""
+    from engine.train.losses import _traj_reg
+
+    class _Ctx:
+        def __init__(self, m):
+            self.trainer = type("T", (), {"model": m, "extent": 1.0, "cfg": get_preset("fast")})()
+
+    runs = {}
+    for adam in ("exact", "auto"):
+        m = _model(get_preset("fast", {"gaussian_adam": adam, "lazy_min_columns": 40}))
+        g = m.gaussians
+        for t in (0.1, 0.15, 0.25):
+            g.optimizer.zero_grad(set_to_none=True)
+            rgb, _, _, _ = m.render(_view(t))
+            loss = rgb.mean()
+            with torch.no_grad():
+                getattr(g, TRAJ_MEANS)[:, 1::3] += 1e-3  # nonzero residuals: the prior has a gradient
+            reg = _traj_reg(_Ctx(m))
+            assert reg is not None  # not folded: K = 10 < 40
+            (loss + reg).backward()
+            g.optimizer.step()
+        runs[adam] = m
+    assert isinstance(runs["auto"].gaussians.optimizer, LazyCurveAdam)
+    assert not runs["auto"].gaussians.optimizer.lazy_for(getattr(runs["auto"].gaussians, TRAJ_MEANS))
+    assert runs["auto"].gaussians.optimizer.last_columns(getattr(runs["auto"].gaussians, TRAJ_MEANS)) is None
+    for n in runs["exact"].gaussians.param_names:
+        assert torch.equal(getattr(runs["exact"].gaussians, n), getattr(runs["auto"].gaussians, n)), n
+    m = _model(get_preset("fast", {"gaussian_adam": "auto", "lazy_min_columns": 10}))  # K = 10: lazy
+    assert m.gaussians.optimizer.lazy_for(getattr(m.gaussians, TRAJ_MEANS))
+    assert _traj_reg(_Ctx(m)) is None and m.gaussians.optimizer.inner_decay[TRAJ_MEANS] > 0
+
+
+def test_the_switch_rejects_a_bad_name():
+    with pytest.raises(ValueError, match="lazy"):
+        _model(get_preset("fast", {"gaussian_adam": "lazyy"}))
+
+
+def test_the_inner_prior_folded_in_is_its_gradient_on_the_touched_columns():
+    """inner_decay adds d/dD of w mean|D|^2 / extent^2 (the traj_reg term) on the updated inner
+    columns only: the same step as the term's autograd gradient there, to rounding."""
+    w, extent, cols = 0.7, 1.3, [3, 4, 5, 6]
+    a, b = _params(), _params()
+    _, la = _opts(_params(), a)
+    _, lb = _opts(_params(), b)
+    la.inner_decay["g1"] = w / extent ** 2
+    gen = torch.Generator().manual_seed(5)
+    gr = torch.randn(SHAPES[1], generator=gen)
+    keep = torch.zeros(K, dtype=torch.bool)
+    keep[cols] = True
+    gr[:, ~keep] = 0.0
+    with torch.enable_grad():
+        prior = trajectory.inner_residual_sq(b[1]).mean() * (w / extent ** 2)
+        (pg,) = torch.autograd.grad(prior, b[1])
+    a[1].grad = gr.clone()
+    b[1].grad = gr + pg * keep[None, :, None]
+    for p in (a[0], a[2], b[0], b[2]):
+        p.grad = None
+    for opt in (la, lb):
+        trajectory._note_touched(K, cols)
+        opt.step()
+    np.testing.assert_allclose(a[1].detach().numpy(), b[1].detach().numpy(), rtol=1e-6, atol=1e-9)
+    assert not torch.equal(a[1], _params()[1])
+    # the junctions got no prior: without a gradient elsewhere the decay changes nothing there
+    assert torch.equal(la.state[a[1]]["exp_avg"][:, 3], lb.state[b[1]]["exp_avg"][:, 3])
+
+
+@pytest.mark.slow
+def test_lazy_training_holds_quiet_curves_also_after_a_settle(demo_capture):
+    """Real guided steps on the demo with gaussian_adam=lazy: the quiet hook zeroes the columns
+    each step updated (not the whole curves), and a settle (here a checkpoint's) re-applies the
+    mask whole, so the quiet segments' inner points are zero in the saved model too; the
+    inner-residual prior is folded into the optimizer (no traj_reg loss)."""
+    from engine.io.capture import load_capture
+    from engine.train.trainer import Trainer
+    from tests.test_quiet_curves import _TINY, _inner_norms
+
+    tr = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "quiet_curves": True,
+                                                              "gaussian_adam": "lazy"}), device="cpu")
+    tr.init_model()
+    calls = {"local": 0}
+    orig = tr.quiet_curves._apply
+
+    def spy(g, local):
+        calls["local"] += local
+        return orig(g, local)
+    tr.quiet_curves._apply = spy
+    for step in range(_TINY["iterations"]):
+        tr.step(step)
+    opt = tr.model.gaussians.optimizer
+    assert isinstance(opt, LazyCurveAdam) and "traj_reg" not in tr.last_losses
+    assert opt.inner_decay[TRAJ_MEANS] > 0
+    assert calls["local"] >= 1  # steps without a settle before them zeroed their updated columns only
+    used = tr.quiet_curves._mask[2]
+    assert 0.05 < float(used.float().mean()) < 0.95
+    assert float(_inner_norms(tr)[used].max()) == 0.0
+    assert float(_inner_norms(tr)[~used].max()) > 0.0
+    behind = opt._cols[id(getattr(tr.model.gaussians, TRAJ_MEANS))][1]
+    assert (behind < behind.max()).any()  # some columns wait for their catch-up
+    state = tr.model.state()  # settles: the skipped momentum lands, then the mask again
+    saved = state["gaussians"]["params"][TRAJ_MEANS]
+    for k in range(used.shape[1]):
+        assert (saved[used[:, k], 3 * k + 1:3 * k + 3] == 0).all()
