@@ -132,6 +132,29 @@ def test_no_touched_record_updates_every_column():
     assert float((a[1] - b[1]).detach().abs().max()) < 1e-6
 
 
+def test_a_plain_autograd_reader_makes_every_column_touched():
+    """A gradient that autograd accumulates into a lazy curve (a reader that notes no columns)
+    may be anywhere: that step updates every column, so nothing it reached is dropped."""
+    m = _model(get_preset("fast", {"gaussian_adam": "lazy"}))
+    g = m.gaussians
+    opt = g.optimizer
+    _train_steps(m, [0.1])  # registers the curves
+    tm = getattr(g, TRAJ_MEANS)
+    before = tm.detach().clone()
+    opt.zero_grad(set_to_none=True)
+    rgb, _, _, _ = m.render(_view(0.1))  # notes column 3
+    with trajectory.gradient_sink():
+        (rgb.mean() + (tm[:, 7] ** 2).sum() * 1e-3 + tm[:, 7].sum()).backward()
+    opt.step()
+    assert opt.last_touched == K_MODEL + 1  # the positions: every column; the rotations: junction 3
+    assert not torch.equal(tm.detach()[:, 7], before[:, 7])
+    _train_steps(m, [0.1])  # the next step is lazy again: junction 3 alone
+    assert opt.last_touched == 2
+
+
+K_MODEL = 10  # _model's curves: 4 knots
+
+
 def _model(cfg, n=300, seed=0):
     rng = np.random.default_rng(seed)
     pts = rng.uniform(-1, 1, size=(n, 3)) * [1.5, 1.0, 0.3] + [0, 0, 4.0]
@@ -149,11 +172,15 @@ def _view(t):
 
 
 def _train_steps(m, times):
+    """Steps as the trainer takes them: the backward inside ``gradient_sink`` (the curves'
+    readers write their columns themselves; outside it autograd sums them, which the lazy
+    optimizer cannot tell from any other reader's: it then updates every column)."""
     g = m.gaussians
     for t in times:
         g.optimizer.zero_grad(set_to_none=True)
         rgb, _, _, _ = m.render(_view(t))
-        rgb.mean().backward()
+        with trajectory.gradient_sink():
+            rgb.mean().backward()
         g.optimizer.step()
 
 

@@ -44,6 +44,7 @@ Every other parameter group is :class:`FusedAdam`'s (torch's Adam bit for bit).
 """
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 
@@ -75,12 +76,15 @@ class LazyCurveAdam(FusedAdam):
         self.inner_decay: dict[str, float] = {}
         self.settles = 0                           # settle() calls (QuietCurves: then apply its mask whole)
         self._last_cols: dict[int, tuple] = {}  # id(param) -> (weakref, the columns the last step updated)
+        self._foreign: set[int] = set()  # id(param) of curves a plain autograd reader reached since the last step
 
     # ---- bookkeeping ----------------------------------------------------------------------
     def _column_steps(self, p: torch.Tensor, step: int) -> np.ndarray:
         hit = self._cols.get(id(p))
         if hit is None or hit[0]() is not p or hit[1].shape[0] != p.shape[1]:
             # a new tensor (densification swaps them after settle()): every column is current
+            if hit is None or hit[0]() is not p:  # once per tensor: a hook registered again would stay too
+                p.register_hook(functools.partial(_foreign, weakref.ref(self), id(p)))
             hit = self._cols[id(p)] = (weakref.ref(p), np.full(p.shape[1], step, np.int64))
         return hit[1]
 
@@ -93,8 +97,9 @@ class LazyCurveAdam(FusedAdam):
         a.append(float(g["lr"]) * math.sqrt(1 - beta2 ** step) / (1 - beta1 ** step))
         return a
 
-    def _coast(self, g: dict, since: np.ndarray, upto: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per column: (skipped steps s, sum_{j<=s} a_{since+j} r^j, ...) for steps since+1 .. upto."""
+    def _coast(self, g: dict, since: np.ndarray, upto: int) -> tuple:
+        """Per column, for the steps ``since + 1 .. upto`` it skipped: (their count s, the momentum
+        factor sum_{j<=s} a_{since+j} r^j, beta1^s, beta2^s)."""
         beta1, beta2 = g["betas"]
         r = beta1 / math.sqrt(beta2)
         a = self._a.get(g["name"], [])
@@ -135,11 +140,14 @@ class LazyCurveAdam(FusedAdam):
                 self._record_a(g, step)
                 at = self._column_steps(p, step - 1)
                 cols = trajectory.touched_columns(p.shape[1])
-                cols = np.arange(p.shape[1]) if cols is None else np.asarray(cols, np.int64)
+                if cols is None or id(p) in self._foreign:  # a reader that says nothing: every column
+                    cols = np.arange(p.shape[1])
+                cols = np.asarray(cols, np.int64)
                 touched_total += cols.size
                 _update_columns(p, p.grad, m, v, cols, at, step, g, self, self._decay(g, p))
                 self._last_cols[id(p)] = (weakref.ref(p), cols)
         self.last_touched = touched_total
+        self._foreign.clear()
 
     def lazy_for(self, p: torch.Tensor, g: dict | None = None) -> bool:
         """Whether ``p`` is updated at its touched columns (a curve of at least
@@ -197,6 +205,15 @@ class LazyCurveAdam(FusedAdam):
         self.settles += 1  # whoever settles may write next: a hook applying a mask must redo it whole
 
 
+def _foreign(opt_ref, key: int, grad) -> None:
+    """Tensor hook of a lazy curve: a gradient that autograd accumulated (a reader that is not a
+    curve evaluation noting its columns; None when every reader summed in place,
+    ``trajectory.gradient_sink``) may be in any column, so the next step updates them all."""
+    opt = opt_ref()
+    if grad is not None and opt is not None:
+        opt._foreign.add(key)
+
+
 def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, g: dict, opt: LazyCurveAdam,
                     decay: float = 0.0) -> None:
     """Columns ``cols`` of curve ``p``: catch up from ``at[cols]`` to ``step - 1`` (``grad``
@@ -206,7 +223,7 @@ def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, 
     upto = step - 1 if grad is not None else step
     s, coast, d1, d2 = opt._coast(g, at[cols], upto)
     f32 = np.float32
-    if grad is not None and cols.size == p.shape[1] and not (s > 0).any() and _fused_dense(p, grad, m, v):
+    if grad is not None and not decay and cols.size == p.shape[1] and not (s > 0).any() and _fused_dense(p):
         # every column, none behind: FusedAdam's pass (torch's Adam bit for bit)
         opt._dense_update(g, p, m, v, float(step))
         at[cols] = step
@@ -226,7 +243,7 @@ def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, 
     at[cols] = step
 
 
-def _fused_dense(p, grad, m, v) -> bool:
+def _fused_dense(p) -> bool:
     return fused_adam.ENABLED and fused_adam.exact() and fused_adam._supported(p)
 
 
