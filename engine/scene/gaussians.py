@@ -369,12 +369,11 @@ class GaussianModel(nn.Module):
     # ------------------------------------------------------------------ (de)serialisation
     def settle(self) -> None:
         """Bring a lazy optimiser's curves up to its last step (engine.scene.lazy_adam): before
-        anything reads or writes the parameters other than a training step's renders. Then the
-        :meth:`on_settle` callbacks (a constraint to re-apply: QuietCurves)."""
+        anything reads or writes the parameters other than a training step's renders. Then, when
+        it moved something, the :meth:`on_settle` callbacks (a constraint to re-apply: QuietCurves)."""
         settle = getattr(self.optimizer, "settle", None)
-        if settle is None:
+        if settle is None or not settle():  # nothing moved (every curve dense, or all current): as before
             return
-        settle()
         for ref in list(_SETTLE_HOOKS.get(self, ())):
             fn = ref()
             if fn is not None:

@@ -190,8 +190,10 @@ class LazyCurveAdam(FusedAdam):
         fused_adam._fused_update(p, p.grad, m, v, step, lr, float(beta1), float(beta2), eps, scratch)
 
     @torch.no_grad()
-    def settle(self) -> None:
-        """Bring every curve column up to the last step (the skipped steps' moves and decay)."""
+    def settle(self) -> bool:
+        """Bring every curve column up to the last step (the skipped steps' moves and decay).
+        Returns whether any column moved."""
+        moved = False
         for g in self.param_groups:
             for p in g["params"]:
                 state = self.state.get(p)
@@ -202,7 +204,9 @@ class LazyCurveAdam(FusedAdam):
                 behind = np.nonzero(at < step)[0]
                 if behind.size:
                     _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self)
+                    moved = True
         self.settles += 1  # whoever settles may write next: a hook applying a mask must redo it whole
+        return moved
 
 
 def _foreign(opt_ref, key: int, grad) -> None:
