@@ -10,10 +10,10 @@ import torch
 
 from engine.scene import fused_adam, lazy_adam, trajectory
 from engine.scene.fused_adam import FusedAdam
-from engine.scene.gaussians import GaussianModel
 from engine.scene.lazy_adam import LazyCurveAdam
-from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
+from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS
 from engine.train.presets import get_preset
+from tests.test_selective_adam import _model, _view  # a 300-Gaussian model with 4-knot curves, a 48x32 view
 
 N, K = 1031, 19
 SHAPES = [(N, 3), (N, K, 3), (N, K, 4)]  # one plain group, two curves
@@ -142,7 +142,7 @@ def test_a_plain_autograd_reader_makes_every_column_touched():
     tm = getattr(g, TRAJ_MEANS)
     before = tm.detach().clone()
     opt.zero_grad(set_to_none=True)
-    rgb, _, _, _ = m.render(_view(0.1))  # notes column 3
+    rgb, _, _, _ = m.render(_view(t=0.1))  # notes column 3
     with trajectory.gradient_sink():
         (rgb.mean() + (tm[:, 7] ** 2).sum() * 1e-3 + tm[:, 7].sum()).backward()
     opt.step()
@@ -155,22 +155,6 @@ def test_a_plain_autograd_reader_makes_every_column_touched():
 K_MODEL = 10  # _model's curves: 4 knots
 
 
-def _model(cfg, n=300, seed=0):
-    rng = np.random.default_rng(seed)
-    pts = rng.uniform(-1, 1, size=(n, 3)) * [1.5, 1.0, 0.3] + [0, 0, 4.0]
-    g = GaussianModel(pts, rng.uniform(size=(n, 3)))
-    g.setup_optimizer(cfg, 1.0)
-    m = Model4D(g)
-    m.add_trajectories([0.0, 0.1, 0.2, 0.3], 1e-3, 1e-3)
-    m.use_deformation = True
-    return m
-
-
-def _view(t):
-    K_ = torch.tensor([[[40.0, 0, 24.0], [0, 40.0, 16.0], [0, 0, 1]]])
-    return {"viewmat": torch.eye(4)[None], "K": K_, "width": 48, "height": 32, "time": t, "campos": torch.zeros(3)}
-
-
 def _train_steps(m, times):
     """Steps as the trainer takes them: the backward inside ``gradient_sink`` (the curves'
     readers write their columns themselves; outside it autograd sums them, which the lazy
@@ -178,7 +162,7 @@ def _train_steps(m, times):
     g = m.gaussians
     for t in times:
         g.optimizer.zero_grad(set_to_none=True)
-        rgb, _, _, _ = m.render(_view(t))
+        rgb, _, _, _ = m.render(_view(t=t))
         with trajectory.gradient_sink():
             rgb.mean().backward()
         g.optimizer.step()
@@ -234,7 +218,7 @@ def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit():
         g = m.gaussians
         for t in (0.1, 0.15, 0.25):
             g.optimizer.zero_grad(set_to_none=True)
-            rgb, _, _, _ = m.render(_view(t))
+            rgb, _, _, _ = m.render(_view(t=t))
             loss = rgb.mean()
             with torch.no_grad():
                 getattr(g, TRAJ_MEANS)[:, 1::3] += 1e-3  # nonzero residuals: the prior has a gradient
