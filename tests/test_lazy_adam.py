@@ -337,3 +337,28 @@ def test_auto_on_a_short_capture_trains_bit_for_bit_as_exact(demo_capture):
         digests[adam] = (h.hexdigest(), len(getattr(tr.spike_flow, "fitted", {}) or {}))
     assert digests["exact"][1] >= 1  # the schedule reached a spike-flow fit
     assert digests["auto"] == digests["exact"]
+
+
+def test_a_kept_gradient_buffer_is_zeroed_by_the_step_that_reads_it(monkeypatch):
+    """On long captures the curves' gradients live in kept buffers (engine.scene.grad_buffers);
+    the lazy step zeroes the columns it read in its own pass and says so, so the next step's
+    first reader finds nothing to clean, and the training is the same bit for bit."""
+    from engine.scene import grad_buffers
+
+    monkeypatch.setattr(grad_buffers, "MIN_BYTES", 0)  # the test's small curves get buffers too
+    runs = {}
+    for clear in (True, False):
+        monkeypatch.setattr(lazy_adam, "CLEAR_BUFFERS", clear)
+        grad_buffers.clear()
+        m = _model(get_preset("fast", {"gaussian_adam": "lazy"}))
+        _train_steps(m, [0.1, 0.15, 0.2, 0.15, 0.1])
+        tm = getattr(m.gaussians, TRAJ_MEANS)
+        e = grad_buffers._BUFFERS[id(tm)]
+        assert tm.grad is e.buf
+        if clear:
+            assert not e.dirty and float(e.buf.abs().max()) == 0.0
+        else:
+            assert e.dirty == {3}
+        runs[clear] = [getattr(m.gaussians, n).detach().clone() for n in m.gaussians.param_names]
+    grad_buffers.clear()
+    assert all(torch.equal(a, b) for a, b in zip(runs[True], runs[False]))

@@ -338,6 +338,9 @@ VARIANTS = {
     "adam-lazy": {"doc": "gaussian_adam=lazy: the curves' touched columns only, their skipped steps caught up "
                          "(engine.scene.lazy_adam)", "hexplane_sampler": "auto",
                   "overrides": {"gaussian_adam": "lazy"}},
+    "lazy-clean-at-take": {"doc": "the lazy step leaves a kept gradient buffer's read columns to grad_buffers' "
+                                  "strided zeroing at the next step's first reader (lazy_adam.CLEAR_BUFFERS=False)",
+                           "hexplane_sampler": "auto", "patches": {(lazy_adam, "CLEAR_BUFFERS"): False}},
     "adam-serial": {"doc": "FusedAdam's one-pass update of a large parameter on one thread (fused_adam.PARALLEL="
                            "False), as before its runs of blocks on numba's threads (same numbers)",
                     "hexplane_sampler": "auto", "patches": {(fused_adam, "PARALLEL"): False}},

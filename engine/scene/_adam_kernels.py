@@ -235,10 +235,11 @@ def selective_update(p, runs, n_runs, root, m_new, zero, bc2s, eps, neg_step):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def lazy_step(p, g, m, v, D, C, cols, coast, d1, d2, w1, b2, c2, has_grad, decay, bc2s, eps, neg_step):
+def lazy_step(p, g, m, v, D, C, cols, coast, d1, d2, w1, b2, c2, has_grad, decay, bc2s, eps, neg_step, clear):
     """Catch-up, then (``has_grad``) Adam at columns ``cols`` of every row, the gradient of the
     inner columns (``col % 3``) plus ``decay`` times the parameter (the inner-residual prior's,
-    folded in)."""
+    folded in); ``clear``: the gradient's entries set to zero once read (a kept gradient buffer,
+    engine.scene.grad_buffers, zeroed in the pass that has its lines in the cache)."""
     one = np.float32(1.0)
     zf = np.float32(0.0)
     low = abs(w1) < np.float32(0.5)  # torch's lerp: two formulas around weight 0.5
@@ -264,6 +265,8 @@ def lazy_step(p, g, m, v, D, C, cols, coast, d1, d2, w1, b2, c2, has_grad, decay
                 vi = vi * f2
                 if has_grad:
                     gi = g[i]
+                    if clear:
+                        g[i] = zf
                     if dj != zf:
                         gi = gi + dj * pi
                     if low:

@@ -111,6 +111,21 @@ def mark(leaf: torch.Tensor, cols) -> None:
         e.dirty.update(map(int, cols))
 
 
+def holds(leaf: torch.Tensor, grad: torch.Tensor) -> bool:
+    """Whether ``grad`` is ``leaf``'s buffer with only marked columns possibly nonzero (no foreign
+    gradient since it was handed out): then whoever zeroes some of them may say so (:func:`cleaned`)."""
+    e = _BUFFERS.get(id(leaf))
+    return e is not None and e.leaf() is leaf and e.buf is grad and not e.all_dirty
+
+
+def cleaned(leaf: torch.Tensor, cols) -> None:
+    """Columns ``cols`` of ``leaf``'s buffer are zero again (the lazy optimizer zeroed them as it
+    read them, engine.scene.lazy_adam): the next :func:`take` need not."""
+    e = _BUFFERS.get(id(leaf))
+    if e is not None and e.leaf() is leaf:
+        e.dirty.difference_update(map(int, cols))
+
+
 def clear() -> None:
     """Drop every buffer (tests)."""
     _BUFFERS.clear()
