@@ -170,6 +170,17 @@ def _self_check(one_pass: bool) -> bool:
                and torch.equal(o_ref.state[a]["exp_avg_sq"], o_fus.state[b]["exp_avg_sq"]) for a, b in zip(ref, fus))
 
 
+def torch_adam_update(p, grad, m, v, step: float, lr: float, betas, eps: float) -> None:
+    """``torch.optim.adam._single_tensor_adam``'s update (no weight decay, amsgrad or maximize) in
+    place, in torch ops: the plain-torch reference of the fused passes (the selective and lazy
+    steps' references, the lazy step's fallback off the CPU)."""
+    beta1, beta2 = betas
+    m.lerp_(grad, 1 - beta1)
+    v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+    denom = (v.sqrt() / ((1 - beta2 ** step) ** 0.5)).add_(eps)
+    p.addcdiv_(m, denom, value=-(lr / (1 - beta1 ** step)))
+
+
 def adam_moments(state: dict, p: torch.Tensor, who: str) -> tuple[torch.Tensor, torch.Tensor]:
     """``p``'s Adam moments (exp_avg, exp_avg_sq), created on first use as
     torch.optim.Adam._init_group does, with the step count advanced; they must be contiguous
@@ -209,16 +220,21 @@ class FusedAdam(torch.optim.Adam):
         self._fused_step()
         return loss
 
+    def _scratch_for(self, numel: int, one_pass: bool) -> torch.Tensor:
+        """The kept float32 scratch :func:`_fused_update` needs for a parameter of ``numel``
+        entries (grown when too small): a block per thread in one pass, else every square root."""
+        need = min(numel, BLOCK) * (len(_thread_cuts(numel)) - 1) if one_pass else numel
+        scratch = getattr(self, "_scratch", None)
+        if scratch is None or scratch.numel() < need:
+            scratch = self._scratch = torch.empty(need, dtype=torch.float32)
+        return scratch
+
     @torch.no_grad()
     def _fused_step(self, one_pass: bool | None = None) -> None:
         if one_pass is None:
             one_pass = ONE_PASS and one_pass_exact()
-        need = max((p.numel() for g in self.param_groups for p in g["params"] if p.grad is not None), default=0)
-        if one_pass:
-            need = min(need, BLOCK) * (len(_thread_cuts(need)) - 1)  # a scratch block per thread
-        scratch = getattr(self, "_scratch", None)
-        if scratch is None or scratch.numel() < need:
-            scratch = self._scratch = torch.empty(need, dtype=torch.float32)
+        scratch = self._scratch_for(
+            max((p.numel() for g in self.param_groups for p in g["params"] if p.grad is not None), default=0), one_pass)
         for g in self.param_groups:
             beta1, beta2 = g["betas"]
             for p in g["params"]:

@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from . import fused_adam, grad_buffers, trajectory
-from .fused_adam import KERNELS, FusedAdam, adam_moments
+from .fused_adam import KERNELS, FusedAdam, adam_moments, torch_adam_update
 
 # False: the columns' updates in torch ops (reference_columns), as the first version
 FUSED = True
@@ -94,9 +94,9 @@ class LazyCurveAdam(FusedAdam):
         beta1, beta2 = g["betas"]
         a = self._a.setdefault(g["name"], [])
         del a[step - 1:]  # a restart from a checkpoint rewrites the record from its step
-        while len(a) < step - 1:  # steps this group took no part in (no gradient): their lr is unknown
-            a.append(float(g["lr"]) * math.sqrt(1 - beta2 ** (len(a) + 1)) / (1 - beta1 ** (len(a) + 1)))
-        a.append(float(g["lr"]) * math.sqrt(1 - beta2 ** step) / (1 - beta1 ** step))
+        while len(a) < step:  # this step's a_u, after any this record missed (a restart: their lr is unknown)
+            u = len(a) + 1
+            a.append(float(g["lr"]) * math.sqrt(1 - beta2 ** u) / (1 - beta1 ** u))
         return a
 
     def _coast(self, g: dict, since: np.ndarray, upto: int) -> tuple:
@@ -181,15 +181,11 @@ class LazyCurveAdam(FusedAdam):
     def _dense_update(self, g: dict, p: torch.Tensor, m, v, step: float) -> None:
         lr, (beta1, beta2), eps = float(g["lr"]), g["betas"], float(g["eps"])
         if not (fused_adam.ENABLED and fused_adam.exact() and fused_adam._supported(p)):
-            _torch_adam(p.data, p.grad, m, v, step, lr, (beta1, beta2), eps)
+            torch_adam_update(p.data, p.grad, m, v, step, lr, (beta1, beta2), eps)
             return
-        need = min(p.numel(), fused_adam.BLOCK) * fused_adam.MAX_THREADS
-        if not (fused_adam.ONE_PASS and fused_adam.one_pass_exact()):
-            need = p.numel()
-        scratch = getattr(self, "_scratch", None)
-        if scratch is None or scratch.numel() < need:
-            scratch = self._scratch = torch.empty(need, dtype=torch.float32)
-        fused_adam._fused_update(p, p.grad, m, v, step, lr, float(beta1), float(beta2), eps, scratch)
+        one_pass = fused_adam.ONE_PASS and fused_adam.one_pass_exact()
+        fused_adam._fused_update(p, p.grad, m, v, step, lr, float(beta1), float(beta2), eps,
+                                 self._scratch_for(p.numel(), one_pass), one_pass)
 
     @torch.no_grad()
     def settle(self) -> bool:
@@ -229,8 +225,8 @@ def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, 
     upto = step - 1 if grad is not None else step
     s, coast, d1, d2 = opt._coast(g, at[cols], upto)
     f32 = np.float32
-    if grad is not None and not decay and cols.size == p.shape[1] and not (s > 0).any() and _fused_dense(p):
-        # every column, none behind: FusedAdam's pass (torch's Adam bit for bit)
+    if grad is not None and not decay and cols.size == p.shape[1] and not (s > 0).any():
+        # every column, none behind: the dense update (FusedAdam's pass: torch's Adam bit for bit)
         opt._dense_update(g, p, m, v, float(step))
         at[cols] = step
         return
@@ -252,10 +248,6 @@ def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, 
     reference_columns(p, grad, m, v, cols, s, coast, d1, d2, step, float(g["lr"]), (beta1, beta2), float(g["eps"]),
                       decay)
     at[cols] = step
-
-
-def _fused_dense(p) -> bool:
-    return fused_adam.ENABLED and fused_adam.exact() and fused_adam._supported(p)
 
 
 def _fusable(p, grad, m, v) -> bool:
@@ -286,20 +278,10 @@ def reference_columns(p, grad, m, v, cols, s, coast, d1, d2, step: int, lr: floa
         if decay:
             inner = torch.from_numpy(cols % 3 != 0).to(p.device)[None, :, None]
             gc = torch.where(inner, gc + np.float32(decay) * stale, gc)
-        _torch_adam(pc, gc, mc, vc, step, lr, betas, eps)
+        torch_adam_update(pc, gc, mc, vc, step, lr, betas, eps)
     p.data[:, idx] = pc
     m[:, idx] = mc
     v[:, idx] = vc
-
-
-def _torch_adam(p, grad, m, v, step: float, lr: float, betas, eps: float) -> None:
-    """torch.optim.adam._single_tensor_adam's update (no weight decay, amsgrad or maximize),
-    in place."""
-    beta1, beta2 = betas
-    m.lerp_(grad, 1 - beta1)
-    v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-    denom = (v.sqrt() / math.sqrt(1 - beta2 ** step)).add_(eps)
-    p.addcdiv_(m, denom, value=-lr / (1 - beta1 ** step))
 
 
 def warmup() -> float:

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from . import fused_adam, trajectory
-from .fused_adam import KERNELS, FusedAdam, adam_moments, exact
+from .fused_adam import KERNELS, FusedAdam, adam_moments, exact, torch_adam_update
 
 
 def _spans(cols: list[int] | None, shape: tuple) -> np.ndarray:
@@ -163,13 +163,8 @@ def reference_step(p: torch.Tensor, grad: torch.Tensor, m: torch.Tensor, v: torc
     r = torch.ones(n, dtype=torch.bool) if rows is None else rows.clone()
     r |= ((grad != 0) & el).reshape(n, -1).any(1)
     el &= r.reshape((n,) + (1,) * (p.dim() - 1))
-    beta1, beta2 = betas
     gs, ms, vs, ps = grad[el], m[el], v[el], p[el]
-    ms.lerp_(gs, 1 - beta1)
-    vs.mul_(beta2).addcmul_(gs, gs, value=1 - beta2)
-    bc1, bc2 = 1 - beta1 ** step, 1 - beta2 ** step
-    denom = (vs.sqrt() / (bc2 ** 0.5)).add_(eps)
-    ps.addcdiv_(ms, denom, value=-(lr / bc1))
+    torch_adam_update(ps, gs, ms, vs, step, lr, betas, eps)
     m[el], v[el], p[el] = ms, vs, ps
 
 
