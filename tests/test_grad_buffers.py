@@ -155,3 +155,29 @@ def test_training_with_reused_buffers_is_bit_for_bit_the_fresh_path(demo_capture
             digests.append(h.hexdigest())
             assert bool(grad_buffers._BUFFERS) == enabled
         assert digests[0] == digests[1], f"rgb_only={rgb_only}"
+
+
+def test_a_replaced_leaf_s_buffer_is_carried_zeroed_and_grown_in_place():
+    """Densification / births replace a curve's leaf: its buffer, zeroed, becomes the new leaf's,
+    in the same storage while it has room (no fresh zero buffer), and gradients stay the fresh
+    path's."""
+    from engine.scene import row_store
+
+    old = _curves(n=40)
+    _backward(old, [0.1, 0.25])  # the buffer is taken and written
+    buf = old.grad
+    assert grad_buffers.holds(old, buf) and buf.abs().sum() > 0
+    keep = torch.arange(40) % 5 != 0  # 32 kept, 6 appended: 38 rows fit in the 40-row buffer
+    extra = torch.randn(6, *old.shape[1:], generator=torch.Generator().manual_seed(1))
+    new = torch.nn.Parameter(row_store.append_rows(old.detach()[keep], extra))
+    grad_buffers.carry(old, new, keep, 6)
+    got = grad_buffers.take(new)
+    assert got.shape == new.shape and not got.any() and got.data_ptr() == buf.data_ptr()
+    carried = _backward(new, [0.3], prior=True).clone()
+    grad_buffers.ENABLED = False
+    fresh_leaf = torch.nn.Parameter(new.detach().clone())
+    assert torch.equal(carried, _backward(fresh_leaf, [0.3], prior=True))
+    grad_buffers.ENABLED = True
+    grows = torch.nn.Parameter(row_store.append_rows(new.detach(), torch.zeros(30, *new.shape[1:])))
+    grad_buffers.carry(new, grows, None, 30)  # no room: a larger storage, still all zeros
+    assert not grad_buffers.take(grows).any() and grad_buffers.take(grows).shape == grows.shape

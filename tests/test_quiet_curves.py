@@ -68,6 +68,33 @@ def test_zero_inner_clears_only_the_quiet_segments_inner_points():
     assert torch.equal(again, p) and inner_keep(quiet, 4).shape == (3, 7, 4)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_zero_quiet_columns_kernel_equals_the_mask_multiply(dtype, monkeypatch):
+    """The in-place kernel gives the mask multiply's numbers bit for bit (the sign of a zeroed
+    negative entry included), over every column or a step's few, without building the mask."""
+    from engine.train import quiet_curves as qc
+
+    gen = torch.Generator().manual_seed(3)
+    n, f = 50, 6
+    quiet = torch.rand(n, f - 1, generator=gen) > 0.5
+    base = torch.randn(n, 3 * (f - 1) + 1, 4, generator=gen, dtype=dtype)
+    for cols in (None, np.array([0, 1, 5, 7, 8, 15]), np.array([3, 6])):
+        want = base.clone()
+        monkeypatch.setattr(qc, "FUSED", False)
+        keeps = {}
+        qc.zero_quiet_columns(want, quiet, cols, keeps)
+        assert set(keeps) == {4}  # the fallback builds (and keeps) the mask
+        if cols is None:
+            assert torch.equal(want, base * inner_keep(quiet, 4).to(dtype))
+        monkeypatch.setattr(qc, "FUSED", True)
+        got, keeps = base.clone(), {}
+        qc.zero_quiet_columns(got, quiet, cols, keeps)
+        assert keeps == {}  # no mask built
+        assert torch.equal(got.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32),
+                           want.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32))
+        assert not torch.equal(got, base) or cols is not None
+
+
 def test_tie_junctions_holds_a_run_of_quiet_segments_at_its_mean_and_nothing_else():
     quiet = torch.tensor([[True, True, False], [False, False, False], [False, True, True]])
     assert junction_groups(quiet).view(3, 4).tolist() == [[0, 0, 0, 1], [4, 5, 6, 7], [8, 9, 9, 9]]

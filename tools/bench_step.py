@@ -45,11 +45,20 @@ from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
-from engine.scene import fused_adam, grad_buffers, lazy_adam, selective_adam, trajectory
+from engine.scene import fused_adam, grad_buffers, lazy_adam, row_store, selective_adam, trajectory
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import fused_ssim, interpolation, losses, scene_flow, spike_flow, spike_flow_pairs, spike_guidance
+from engine.train import (
+    fused_ssim,
+    interpolation,
+    losses,
+    quiet_curves,
+    scene_flow,
+    spike_flow,
+    spike_flow_pairs,
+    spike_guidance,
+)
 from engine.train.budget import warm_up_runtime
 from engine.train.presets import get_preset
 from engine.train.trainer import Trainer
@@ -383,6 +392,14 @@ VARIANTS = {
     "grad-fresh": {"doc": "the curves' gradient a fresh full [N, K, C] tensor at every step's first reader, as "
                           "before engine.scene.grad_buffers (same numbers)", "hexplane_sampler": "auto",
                    "patches": {(grad_buffers, "ENABLED"): False}},
+    "rows-copied": {"doc": "births, densification and pruning rebuild every per-Gaussian tensor and Adam moment "
+                           "(torch.cat, t[keep]) and give a new curve a fresh gradient buffer, as before "
+                           "engine.scene.row_store and grad_buffers.carry (same numbers)",
+                    "hexplane_sampler": "auto",
+                    "patches": {(row_store, "ENABLED"): False, (grad_buffers, "CARRY"): False}},
+    "quiet-mask": {"doc": "the quiet curves held at zero by multiplying each curve by a mask its size, built at "
+                          "every mask refresh, as before engine.train._quiet_kernels (same numbers)",
+                   "hexplane_sampler": "auto", "patches": {(quiet_curves, "FUSED"): False}},
     "curves-serial": {"doc": "the curve and residual kernels on one thread, as before their row-parallel drivers "
                              "(trajectory.PARALLEL; same numbers)", "hexplane_sampler": "auto",
                       "patches": {(trajectory, "PARALLEL"): False}},

@@ -5,7 +5,9 @@ logits, SH coefficients (DC + rest). Colours live in sRGB-encoded display space:
 ``colour = 0.5 + SH(dirs)`` clamped at 0, exactly like 3DGS, so images are trained on as
 loaded. The optimiser is one Adam with one parameter group per attribute; densification
 rebuilds the tensors and carries Adam's moments (new rows start at zero), as 3DGS's
-``cat_tensors_to_optimizer`` / ``_prune_optimizer`` do.
+``cat_tensors_to_optimizer`` / ``_prune_optimizer`` do, but in place: rows are appended into
+spare storage rows and pruned by moving the kept ones forward (``engine.scene.row_store``),
+so a birth round does not rewrite a long capture's curves and moments.
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from . import grad_buffers, row_store
 from .fused_adam import FusedAdam
 from .lazy_adam import LazyCurveAdam
 from .selective_adam import SelectiveAdam
@@ -266,14 +269,16 @@ class GaussianModel(nn.Module):
                 state = opt.state.pop(old, None)
                 if state is not None:
                     for key in ("exp_avg", "exp_avg_sq"):
-                        v = state[key]
+                        v = state[key]  # the old parameter's: its rows may be overwritten (row_store)
                         if keep is not None:
-                            v = v[keep]
+                            v = row_store.compact_rows(v, keep)
                         if n_new:
-                            v = torch.cat([v, torch.zeros((n_new, *v.shape[1:]), dtype=v.dtype, device=v.device)])
+                            v = row_store.append_rows(v, torch.zeros((n_new, *v.shape[1:]), dtype=v.dtype,
+                                                                     device=v.device))
                         state[key] = v
                     opt.state[new] = state
                 group["params"] = [new]
+            grad_buffers.carry(old, new, keep, n_new)  # a long curve's kept gradient buffer, grown in place
             setattr(self, name, new)
 
     def densify_and_prune(self, *, grad_threshold: float, percent_dense: float, min_opacity: float,
@@ -326,7 +331,8 @@ class GaussianModel(nn.Module):
             keep = ~prune
             if int(keep.sum()) + n_add == 0:  # never prune everything
                 keep = torch.ones_like(keep)
-            new = {n: torch.cat([p[n][keep], add[n]]) for n in names}
+            # in place (row_store): ``p``'s tensors are the parameters' own rows, overwritten here
+            new = {n: row_store.append_rows(row_store.compact_rows(p[n], keep), add[n]) for n in names}
             self._replace(new, keep, n_add)
             self._reset_stats()
             return {"cloned": int(clone.sum()), "split": ns, "pruned": int(prune.sum()) - ns,
@@ -340,7 +346,7 @@ class GaussianModel(nn.Module):
             return 0
         self.settle()
         with torch.no_grad():
-            new = {n: torch.cat([getattr(self, n).detach(), rows[n].to(getattr(self, n))]) for n in self.param_names}
+            new = {n: row_store.append_rows(getattr(self, n), rows[n]) for n in self.param_names}
             self._replace(new, None, m)
             zeros = torch.zeros(m, device=self.grad_accum.device, dtype=self.grad_accum.dtype)
             self.grad_accum = torch.cat([self.grad_accum, zeros])
@@ -351,7 +357,7 @@ class GaussianModel(nn.Module):
         """Remove rows where ``mask`` is True."""
         self.settle()
         keep = ~mask
-        new = {n: getattr(self, n).detach()[keep] for n in self.param_names}
+        new = {n: row_store.compact_rows(getattr(self, n), keep) for n in self.param_names}
         self._replace(new, keep, 0)
         self._reset_stats()
 
@@ -379,6 +385,20 @@ class GaussianModel(nn.Module):
             if fn is not None:
                 fn(self)
 
+    def trim(self) -> None:
+        """Give every parameter and Adam moment storage of its own size (``row_store.exact``): one
+        tensor copied at a time, the spare rows freed with it. Before the state is saved
+        (``torch.save`` writes a tensor's whole storage, spare rows included; copies of the whole
+        state at once would have doubled a long capture's peak memory at every checkpoint)."""
+        opt = self.optimizer
+        for n in self.param_names:
+            p = getattr(self, n)
+            p.data = row_store.exact(p.data)
+            st = opt.state.get(p) if opt is not None else None
+            for key in ("exp_avg", "exp_avg_sq"):
+                if st and isinstance(st.get(key), torch.Tensor):
+                    st[key] = row_store.exact(st[key])
+
     def on_settle(self, fn) -> None:
         """Call the bound method ``fn(gaussians)`` after every :meth:`settle` (held weakly, and
         not by the model: a deep copy of it, the budget probe's, carries none)."""
@@ -389,6 +409,7 @@ class GaussianModel(nn.Module):
     def state(self) -> dict:
         """Everything needed to rebuild the model and its optimiser exactly."""
         self.settle()
+        self.trim()
         return {
             "params": {n: getattr(self, n).detach().cpu() for n in self.param_names},
             "extra_lrs": dict(self.extra_lrs),

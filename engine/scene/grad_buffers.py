@@ -20,8 +20,9 @@ so the gradient is the same as in a fresh one (the same numbers; +0.0 where a fr
 written by a kernel could hold -0.0, which Adam treats alike).
 
 A buffer set as a leaf's ``.grad`` is valid until the next backward that reaches that leaf:
-whoever wants a step's gradient later must copy it. The buffer lives as long as its leaf
-(densification's new parameters get new buffers; a leaf's entry is dropped when the leaf dies).
+whoever wants a step's gradient later must copy it. The buffer lives as long as its leaf; a leaf
+that densification or births replace hands it, zeroed and grown in place, to its successor
+(:func:`carry`); a leaf's entry is dropped when the leaf dies.
 """
 from __future__ import annotations
 
@@ -29,6 +30,8 @@ import functools
 import weakref
 
 import torch
+
+from . import row_store
 
 # False: every step's first reader writes a fresh full gradient, as before (bench-step "grad-fresh")
 ENABLED = True
@@ -38,14 +41,17 @@ ENABLED = True
 # reused buffer's few columns, which reads them back from memory: on the demo (K = 19, 22k Gaussians,
 # 5-7 MB) the reused buffers made the RGB step 0.86x as fast (bench-step --variants grad-fresh,current).
 MIN_BYTES = 32 << 20
+# False: a replaced leaf (densification, births) gets a fresh zero buffer at its first take, as
+# before :func:`carry` (bench-step "rows-copied")
+CARRY = True
 
 
 class _Buffer:
     __slots__ = ("leaf", "buf", "dirty", "all_dirty")
 
-    def __init__(self, leaf: torch.Tensor):
+    def __init__(self, leaf: torch.Tensor, buf: torch.Tensor | None = None):
         self.leaf = weakref.ref(leaf)
-        self.buf = torch.zeros_like(leaf, memory_format=torch.contiguous_format)
+        self.buf = torch.zeros_like(leaf, memory_format=torch.contiguous_format) if buf is None else buf
         self.dirty: set[int] = set()
         self.all_dirty = False
 
@@ -75,14 +81,38 @@ def take(leaf: torch.Tensor) -> torch.Tensor:
     key = id(leaf)
     e = _BUFFERS.get(key)
     if e is None or e.leaf() is not leaf or e.buf.shape != leaf.shape or e.buf.dtype != leaf.dtype:
-        if e is None or e.leaf() is not leaf:  # once per leaf: a hook registered again would stay on it too
-            leaf.register_hook(functools.partial(_foreign, key))
-            # the buffer goes with its leaf (a finished run's model), not at the next run's first take
-            weakref.finalize(leaf, _drop, key)
-        e = _BUFFERS[key] = _Buffer(leaf)
-        return e.buf
+        return _adopt(leaf, None, e).buf
     e.clean()
     return e.buf
+
+
+def _adopt(leaf: torch.Tensor, buf: torch.Tensor | None, e=None) -> _Buffer:
+    """``leaf``'s entry with ``buf`` (every entry zero; None: a new zero buffer)."""
+    key = id(leaf)
+    if e is None or e.leaf() is not leaf:  # once per leaf: a hook registered again would stay on it too
+        leaf.register_hook(functools.partial(_foreign, key))
+        # the buffer goes with its leaf (a finished run's model), not at the next run's first take
+        weakref.finalize(leaf, _drop, key)
+    e = _BUFFERS[key] = _Buffer(leaf, buf)
+    return e
+
+
+def carry(old: torch.Tensor, new: torch.Tensor, keep: torch.Tensor | None, n_new: int) -> None:
+    """``new`` replaces the leaf ``old`` (densification, births: ``old``'s rows where ``keep`` holds,
+    or all of them, then ``n_new`` rows): ``old``'s buffer, zeroed, becomes ``new``'s, grown in place
+    (engine.scene.row_store) instead of a fresh zero buffer the size of the curve, whose page faults a
+    long capture paid at every admission (~20 ms for 70k Gaussians' two curves)."""
+    e = _BUFFERS.get(id(old))
+    if not (ENABLED and CARRY) or e is None or e.leaf() is not old or not usable(new) or e.buf.dtype != new.dtype:
+        return
+    e.clean()  # every entry zero: the kept rows are any rows of it
+    kept = e.buf.shape[0] if keep is None else int(keep.sum())
+    buf = row_store.compact_rows(e.buf, torch.arange(e.buf.shape[0]) < kept)  # a view of its first rows
+    buf = row_store.append_rows(buf, torch.zeros((n_new, *buf.shape[1:]), dtype=buf.dtype, device=buf.device))
+    if buf.shape != new.shape:
+        return
+    del _BUFFERS[id(old)]
+    _adopt(new, buf)
 
 
 def _foreign(key: int, grad) -> None:

@@ -31,6 +31,7 @@ from .fused_ssim import warmup as ssim_warmup
 from .interpolation import warmup as flow_warmup
 from .nearest import warmup as nearest_warmup
 from .presets import TrainConfig
+from .quiet_curves import warmup as quiet_warmup
 
 __all__ = ["DEFORM_REESTIMATE_EVERY", "END_RESERVE_S", "REESTIMATE_FRACTION", "measure_step_seconds", "reestimate_at",
            "reestimate_deform_steps", "reestimate_steps", "steps_for_budget", "warm_up_runtime"]
@@ -161,5 +162,6 @@ def warm_up_runtime(device) -> float:
         selective_warmup()  # gaussian_adam=selective's kernels (engine.scene.selective_adam)
         lazy_warmup()  # gaussian_adam=lazy / auto's kernels (engine.scene.lazy_adam)
         ssim_warmup()  # the D-SSIM term's kernels (engine.train.fused_ssim)
+        quiet_warmup()  # the quiet curves' in-place zeroing (engine.train.quiet_curves)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1e-3)  # imports torch._dynamo once
     return time.perf_counter() - t0

@@ -36,18 +36,27 @@ frames at the eval cameras, off -> on): demo -0.24 / -0.27 -> +0.30 / +0.24 dB, 
 -> +2.28 / +2.15). Dilation 1 block: post hoc (``scripts/flatten_curves.py --quiet``) 2 / 1 / 0
 blocks gave the demo 21.74 / 21.95 / 22.05 dB and ``between`` 21.80 / 21.83 / 21.69 (0 clips
 the moving objects' edges). Cost: ~23 ms CPU per mask (36k Gaussians, 9 intervals), ~3 ms per
-step to apply it.
+step to apply it with :func:`inner_keep`'s mask. On the CPU :func:`zero_quiet_columns` is a kernel
+(``engine.train._quiet_kernels``) that writes the quiet rows' entries alone: no mask the size of the
+curves (on a 1 s capture, 70k Gaussians x 91 columns: 178 MB for the two curves, rebuilt at every
+refresh), the same numbers.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+from ..numba_cache import LazyKernels
 from ..scene.fine_deformation import project_to_grid
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS
 from .spike_guidance import spike_stream_info
 
-__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "junction_groups", "tie_junctions",
-           "QuietCurves", "quiet_curves_factory"]
+__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "zero_quiet_columns", "junction_groups",
+           "tie_junctions", "QuietCurves", "quiet_curves_factory", "warmup"]
+
+KERNELS = LazyKernels(__package__, "_quiet_kernels")
+# False: the mask multiply below (inner_keep) on every device, as before the kernel (bench-step "quiet-mask")
+FUSED = True
 
 
 def quiet_segments(means: torch.Tensor, junctions: torch.Tensor, change, intervals, viewmat: torch.Tensor,
@@ -106,6 +115,42 @@ def zero_inner(params: torch.Tensor, quiet: torch.Tensor, keep: torch.Tensor | N
     where ``quiet`` [N, F-1] holds for segment ``k`` (in place; ``keep``: its
     :func:`inner_keep`, when already built)."""
     params.data.mul_(inner_keep(quiet) if keep is None else keep)
+
+
+@torch.no_grad()
+def zero_quiet_columns(params: torch.Tensor, quiet: torch.Tensor, cols=None, keeps: dict | None = None) -> None:
+    """:func:`zero_inner` restricted to the columns ``cols`` (int array; None: all) of ``params``
+    [N, K, C], in place. On the CPU a kernel writes the quiet rows' entries alone; the mask of
+    :func:`inner_keep` ([N, K, C] floats: 100 MB for a 1 s capture's 70k rotation curves, built
+    at every mask refresh) is used elsewhere (kept in ``keeps`` by channel count). The same
+    numbers either way (zero times the entry, as the mask's multiply)."""
+    n, k, c = params.shape
+    cols = np.arange(k) if cols is None else np.asarray(cols, np.int64)
+    cols = cols[cols % 3 != 0]
+    data = params.data
+    kern = KERNELS.load() if FUSED and data.device.type == "cpu" and data.is_contiguous() else None
+    if kern is not None and data.dtype in (torch.float32, torch.float64):
+        if cols.size and n:
+            kern.zero_quiet_inner(data.view(n, k * c).numpy(), quiet.cpu().numpy(), cols.astype(np.int64), c)
+        return
+    keeps = {} if keeps is None else keeps
+    if c not in keeps:
+        keeps[c] = inner_keep(quiet, c)
+    if cols.size == k - (k + 2) // 3:  # every inner column: one pass
+        data.mul_(keeps[c])
+        return
+    for col in cols.tolist():  # column by column: a view each (an index tensor's copy and scatter: ~8 ms)
+        data[:, col].mul_(keeps[c][:, col])
+
+
+def warmup() -> float:
+    """Compile (first run on a machine) or load the kernel now; seconds taken."""
+    import time
+
+    t0 = time.perf_counter()
+    if KERNELS.load() is not None:
+        zero_quiet_columns(torch.ones(2, 4, 3), torch.tensor([[True], [False]]))
+    return time.perf_counter() - t0
 
 
 def junction_groups(quiet: torch.Tensor) -> torch.Tensor:
@@ -199,15 +244,8 @@ class QuietCurves:
         if tie and "groups" not in keeps:
             keeps["groups"] = junction_groups(quiet)
         for params in (getattr(g, TRAJ_MEANS), getattr(g, TRAJ_QUATS)):
-            c = int(params.shape[-1])
-            if c not in keeps:
-                keeps[c] = inner_keep(quiet, c)
             cols = g.optimizer.last_columns(params) if local and not tie else None
-            if cols is not None:  # column by column: a view each (an index tensor's copy and scatter: ~8 ms)
-                for col in cols[cols % 3 != 0].tolist():
-                    params.data[:, col].mul_(keeps[c][:, col])
-                continue
-            zero_inner(params, quiet, keeps[c])
+            zero_quiet_columns(params, quiet, cols, keeps)
             if tie:
                 tie_junctions(params, keeps["groups"])
 
