@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..numba_cache import install_cache_locator
+from ..numba_prefetch import ROWS_AHEAD, prefetch
 
 install_cache_locator(__name__)
 
@@ -139,10 +140,31 @@ def curve_at(params, cols, weights, out):
         _curve_row(params, cols, weights, out, r)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _prefetch_columns(arr, r, cols):
+    """Request the lines of columns ``cols`` (ascending) of row ``r + ROWS_AHEAD`` of ``arr``
+    [N, K, C] (numba_prefetch: the strided rows are latency-bound without)."""
+    if r + ROWS_AHEAD < arr.shape[0]:
+        _prefetch_row_columns(arr, r + ROWS_AHEAD, cols)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _prefetch_row_columns(arr, row, cols):
+    """Request the lines of columns ``cols`` (ascending) of row ``row`` of ``arr`` [N, K, C]."""
+    n, k, c = arr.shape
+    if cols.size > 0:
+        flat = arr.reshape(-1)
+        base = row * k * c
+        for j in range(cols.size):
+            prefetch(flat, base + cols[j] * c)
+        prefetch(flat, base + cols[cols.size - 1] * c + c - 1)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def curve_at_rows(params, cols, weights, out):
     """:func:`curve_at` on numba's threads."""
     for r in prange(out.shape[0]):
+        _prefetch_columns(params, r, cols)
         _curve_row(params, cols, weights, out, r)
 
 
@@ -173,6 +195,8 @@ def curve_at_backward(grad, cols, weights, out, add):
 def curve_at_backward_rows(grad, cols, weights, out, add):
     """:func:`curve_at_backward` on numba's threads."""
     for r in prange(out.shape[0]):
+        if add:  # a kept buffer's few columns (grad_buffers); without, every entry is written in order
+            _prefetch_columns(out, r, cols)
         _curve_backward_row(grad, cols, weights, out, add, r)
 
 
@@ -188,6 +212,8 @@ def inner_at(params, base, idx, cols, weights, out):
     M, C = out.shape
     nj = cols.size
     for m in range(M):
+        if m + ROWS_AHEAD < M:  # rows in random order: their lines requested ahead (numba_prefetch)
+            _prefetch_row_columns(params, idx[m + ROWS_AHEAD], cols)
         r = idx[m]
         for c in range(C):
             acc = params[r, cols[0], c] * weights[0]
@@ -204,11 +230,15 @@ def inner_at_backward(grad, idx, cols, weights, out):
     distinct, trajectory.sunk) it is autograd's sum of that and the zero-filled one: the
     ``0 +`` turns a -0 product into the +0 the zero-filled gradient would hold."""
     M, C = grad.shape
+    K = out.shape[1]
+    flat = out.reshape(-1)
     for j in range(cols.size):
         col, w = cols[j], weights[j]
         if col % 3 == 0:
             continue
         for m in range(M):
+            if m + ROWS_AHEAD < M:  # rows in random order (numba_prefetch)
+                prefetch(flat, (idx[m + ROWS_AHEAD] * K + col) * C)
             r = idx[m]
             for c in range(C):
                 out[r, col, c] = out[r, col, c] + (0.0 + grad[m, c] * w)
