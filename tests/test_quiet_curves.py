@@ -87,12 +87,17 @@ def test_zero_quiet_columns_kernel_equals_the_mask_multiply(dtype, monkeypatch):
         if cols is None:
             assert torch.equal(want, base * inner_keep(quiet, 4).to(dtype))
         monkeypatch.setattr(qc, "FUSED", True)
+        monkeypatch.setattr(qc, "MASK_MAX_BYTES", 0)  # a large curve: the kernels for every column too
         got, keeps = base.clone(), {}
         qc.zero_quiet_columns(got, quiet, cols, keeps)
         assert keeps == {}  # no mask built
         assert torch.equal(got.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32),
                            want.view(-1).view(torch.int64 if dtype == torch.float64 else torch.int32))
         assert not torch.equal(got, base) or cols is not None
+        monkeypatch.setattr(qc, "MASK_MAX_BYTES", 32 << 20)  # a small curve, every column: the mask
+        small, keeps = base.clone(), {}
+        qc.zero_quiet_columns(small, quiet, cols, keeps)
+        assert torch.equal(small, want) and (set(keeps) == {4}) == (cols is None)
 
 
 def test_tie_junctions_holds_a_run_of_quiet_segments_at_its_mean_and_nothing_else():

@@ -34,3 +34,17 @@ def zero_quiet_inner(p, quiet, cols, C):
                 a = col * C
                 for c in range(C):
                     p[r, a + c] = p[r, a + c] * zero
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def zero_quiet_segments(p, quiet, C):
+    """:func:`zero_quiet_inner` over every inner column, segment by segment: the two inner
+    columns ``3k+1, 3k+2`` of a quiet segment are ``2 C`` consecutive entries of the row."""
+    zero = p.dtype.type(0.0)
+    n, S = quiet.shape
+    for r in prange(n):
+        for k in range(S):
+            if quiet[r, k]:
+                a = (3 * k + 1) * C
+                for e in range(2 * C):
+                    p[r, a + e] = p[r, a + e] * zero

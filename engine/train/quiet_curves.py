@@ -57,6 +57,10 @@ __all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "z
 KERNELS = LazyKernels(__package__, "_quiet_kernels")
 # False: the mask multiply below (inner_keep) on every device, as before the kernel (bench-step "quiet-mask")
 FUSED = True
+# Curves below this many bytes keep the mask for a whole application: built once per refresh and in
+# the cache, its vectorised multiply is the fastest (demo, 22k x 19 x 3: 0.06 ms against the segment
+# kernel's 0.22); above, the mask's memory and rebuilds cost more (70k x 91 x 4: 102 MB, 24 ms a build)
+MASK_MAX_BYTES = 32 << 20
 
 
 def quiet_segments(means: torch.Tensor, junctions: torch.Tensor, change, intervals, viewmat: torch.Tensor,
@@ -120,23 +124,32 @@ def zero_inner(params: torch.Tensor, quiet: torch.Tensor, keep: torch.Tensor | N
 @torch.no_grad()
 def zero_quiet_columns(params: torch.Tensor, quiet: torch.Tensor, cols=None, keeps: dict | None = None) -> None:
     """:func:`zero_inner` restricted to the columns ``cols`` (int array; None: all) of ``params``
-    [N, K, C], in place. On the CPU a kernel writes the quiet rows' entries alone; the mask of
-    :func:`inner_keep` ([N, K, C] floats: 100 MB for a 1 s capture's 70k rotation curves, built
-    at every mask refresh) is used elsewhere (kept in ``keeps`` by channel count). The same
-    numbers either way (zero times the entry, as the mask's multiply)."""
+    [N, K, C], in place. On the CPU a kernel writes the quiet rows' entries alone for a step's few
+    columns, and for every column of a curve of :data:`MASK_MAX_BYTES` or more; otherwise the mask
+    of :func:`inner_keep` ([N, K, C] floats: 100 MB for a 1 s capture's 70k rotation curves, built
+    at every mask refresh) is multiplied in (kept in ``keeps`` by channel count). The same numbers
+    either way (zero times the entry, as the mask's multiply)."""
     n, k, c = params.shape
     cols = np.arange(k) if cols is None else np.asarray(cols, np.int64)
     cols = cols[cols % 3 != 0]
     data = params.data
-    kern = KERNELS.load() if FUSED and data.device.type == "cpu" and data.is_contiguous() else None
-    if kern is not None and data.dtype in (torch.float32, torch.float64):
+    every = cols.size == k - (k + 2) // 3  # every inner column
+    kern = None
+    if (FUSED and data.device.type == "cpu" and data.is_contiguous() and data.dtype in (torch.float32, torch.float64)
+            and not (every and data.numel() * data.element_size() < MASK_MAX_BYTES)):
+        kern = KERNELS.load()
+    if kern is not None:
         if cols.size and n:
-            kern.zero_quiet_inner(data.view(n, k * c).numpy(), quiet.cpu().numpy(), cols.astype(np.int64), c)
+            rows, q = data.view(n, k * c).numpy(), quiet.cpu().numpy()
+            if every:
+                kern.zero_quiet_segments(rows, q, c)
+            else:
+                kern.zero_quiet_inner(rows, q, cols.astype(np.int64), c)
         return
     keeps = {} if keeps is None else keeps
     if c not in keeps:
         keeps[c] = inner_keep(quiet, c)
-    if cols.size == k - (k + 2) // 3:  # every inner column: one pass
+    if every:  # one pass
         data.mul_(keeps[c])
         return
     for col in cols.tolist():  # column by column: a view each (an index tensor's copy and scatter: ~8 ms)
