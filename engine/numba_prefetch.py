@@ -12,11 +12,11 @@ first use, never by ``import engine``).
 from __future__ import annotations
 
 from llvmlite import ir
-from numba import types
+from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["prefetch", "ROWS_AHEAD"]
+__all__ = ["prefetch", "prefetch_columns", "ROWS_AHEAD"]
 
 # rows between the one a kernel works on and the one whose lines it requests (4-32 measured alike
 # for the lazy step; 8 for a margin either way)
@@ -40,3 +40,14 @@ def prefetch(typingctx, arr, idx):
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@njit(cache=True, nogil=True, inline="always")
+def prefetch_columns(flat, base, cols, C):
+    """Request the lines of columns ``cols`` (ascending, of ``C`` entries each) of the row that
+    starts at flat offset ``base`` of ``flat`` (a row-major [N, K, C] array, flat): each column's
+    first entry, and the last column's last entry (a column may straddle a line)."""
+    if cols.size > 0:
+        for j in range(cols.size):
+            prefetch(flat, base + cols[j] * C)
+        prefetch(flat, base + cols[cols.size - 1] * C + C - 1)

@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..numba_cache import install_cache_locator
-from ..numba_prefetch import ROWS_AHEAD, prefetch
+from ..numba_prefetch import ROWS_AHEAD, prefetch, prefetch_columns
 
 install_cache_locator(__name__)
 
@@ -152,12 +152,7 @@ def _prefetch_columns(arr, r, cols):
 def _prefetch_row_columns(arr, row, cols):
     """Request the lines of columns ``cols`` (ascending) of row ``row`` of ``arr`` [N, K, C]."""
     n, k, c = arr.shape
-    if cols.size > 0:
-        flat = arr.reshape(-1)
-        base = row * k * c
-        for j in range(cols.size):
-            prefetch(flat, base + cols[j] * c)
-        prefetch(flat, base + cols[cols.size - 1] * c + c - 1)
+    prefetch_columns(arr.reshape(-1), row * k * c, cols, c)
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -105,10 +105,10 @@ def carry(old: torch.Tensor, new: torch.Tensor, keep: torch.Tensor | None, n_new
     e = _BUFFERS.get(id(old))
     if not (ENABLED and CARRY) or e is None or e.leaf() is not old or not usable(new) or e.buf.dtype != new.dtype:
         return
-    e.clean()  # every entry zero: the kept rows are any rows of it
+    e.clean()  # every entry zero: its first rows serve as the kept ones
     kept = e.buf.shape[0] if keep is None else int(keep.sum())
-    buf = row_store.compact_rows(e.buf, torch.arange(e.buf.shape[0]) < kept)  # a view of its first rows
-    buf = row_store.append_rows(buf, torch.zeros((n_new, *buf.shape[1:]), dtype=buf.dtype, device=buf.device))
+    buf = row_store.append_rows(e.buf[:kept], torch.zeros((n_new, *e.buf.shape[1:]), dtype=e.buf.dtype,
+                                                         device=e.buf.device))
     if buf.shape != new.shape:
         return
     del _BUFFERS[id(old)]

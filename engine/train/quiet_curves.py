@@ -37,9 +37,10 @@ frames at the eval cameras, off -> on): demo -0.24 / -0.27 -> +0.30 / +0.24 dB, 
 blocks gave the demo 21.74 / 21.95 / 22.05 dB and ``between`` 21.80 / 21.83 / 21.69 (0 clips
 the moving objects' edges). Cost: ~23 ms CPU per mask (36k Gaussians, 9 intervals), ~3 ms per
 step to apply it with :func:`inner_keep`'s mask. On the CPU :func:`zero_quiet_columns` is a kernel
-(``engine.train._quiet_kernels``) that writes the quiet rows' entries alone: no mask the size of the
+(``engine.train._quiet_kernels``) that writes the quiet rows' entries alone for a lazy step's few
+columns and for whole applications to curves of ``MASK_MAX_BYTES`` or more: no mask the size of the
 curves (on a 1 s capture, 70k Gaussians x 91 columns: 178 MB for the two curves, rebuilt at every
-refresh), the same numbers.
+refresh); smaller curves keep the mask, whose multiply is the faster there. The same numbers.
 """
 from __future__ import annotations
 
@@ -150,7 +151,7 @@ def zero_quiet_columns(params: torch.Tensor, quiet: torch.Tensor, cols=None, kee
     if c not in keeps:
         keeps[c] = inner_keep(quiet, c)
     if every:  # one pass
-        data.mul_(keeps[c])
+        zero_inner(params, quiet, keeps[c])
         return
     for col in cols.tolist():  # column by column: a view each (an index tensor's copy and scatter: ~8 ms)
         data[:, col].mul_(keeps[c][:, col])
