@@ -272,7 +272,7 @@ def test_the_inner_prior_folded_in_is_its_gradient_on_the_touched_columns():
 
 
 @pytest.mark.slow
-def test_lazy_training_holds_quiet_curves_also_after_a_settle(demo_capture):
+def test_lazy_training_holds_quiet_curves_also_after_a_settle(demo_capture, monkeypatch):
     """Real guided steps on the demo with gaussian_adam=lazy: the quiet hook zeroes the columns
     each step updated (not the whole curves), and a settle (here a checkpoint's) re-applies the
     mask whole, so the quiet segments' inner points are zero in the saved model too; the
@@ -291,9 +291,22 @@ def test_lazy_training_holds_quiet_curves_also_after_a_settle(demo_capture):
         calls["local"] += local
         return orig(g, local)
     tr.quiet_curves._apply = spy
+    reads = {"checked": 0}
+    read = trajectory.before_read
+
+    def checked_read(params, cols):  # what a render reads of a quiet segment is zero, caught up or not
+        read(params, cols)
+        hit = tr.quiet_curves._mask
+        if hit is not None and params is getattr(tr.model.gaussians, TRAJ_MEANS) and hit[1] == params.shape[0]:
+            for c in cols:
+                if c % 3:
+                    assert not params.detach()[hit[2][:, c // 3], c].any()
+                    reads["checked"] += 1
+    monkeypatch.setattr(trajectory, "before_read", checked_read)
     for step in range(_TINY["iterations"]):
         tr.step(step)
     opt = tr.model.gaussians.optimizer
+    assert reads["checked"] > 0 and opt.caught_up > 0
     assert isinstance(opt, LazyCurveAdam) and "traj_reg" not in tr.last_losses
     assert opt.inner_decay[TRAJ_MEANS] > 0
     assert calls["local"] >= 1  # steps without a settle before them zeroed their updated columns only
@@ -362,3 +375,111 @@ def test_a_kept_gradient_buffer_is_zeroed_by_the_step_that_reads_it(monkeypatch)
         runs[clear] = [getattr(m.gaussians, n).detach().clone() for n in m.gaussians.param_names]
     grad_buffers.clear()
     assert all(torch.equal(a, b) for a, b in zip(runs[True], runs[False]))
+
+
+def _read_and_step(catch_up: bool, steps: int = 150):
+    """Dense and lazy Adam on the same gradients, each step's columns those a curve evaluation at a
+    random time reads (through ``trajectory.evaluate``, whose read hook runs first); returns the
+    largest difference between what the two read, relative to how far the curve moved."""
+    knots = [0.1 * i for i in range(7)]  # K = 19
+    a, b = _params(), _params()
+    dense, lazy = _opts(a, b)
+    rng = np.random.default_rng(4)
+    worst, moved = 0.0, 0.0
+    old = lazy_adam.READ_CATCH_UP
+    lazy_adam.READ_CATCH_UP = catch_up
+    try:
+        for step in range(steps):
+            t = float(rng.choice(knots)) if rng.random() < 0.5 else float(rng.uniform(0.0, 0.6))
+            cols = [c for c, _ in trajectory.segment_weights(knots, t)]
+            with torch.no_grad():
+                for pa, pb in zip(a[1:], b[1:]):
+                    ya, yb = trajectory.evaluate(pa, knots, t), trajectory.evaluate(pb, knots, t)
+                    worst = max(worst, float((ya - yb).abs().max()))
+            moved = max(moved, float((a[1] - _params()[1]).detach().abs().max()))
+            gen = torch.Generator().manual_seed(100 + step)
+            for pa, pb in zip(a, b):
+                gr = torch.randn(pa.shape, generator=gen)
+                if pa.dim() == 3:
+                    keep = torch.zeros(K, dtype=torch.bool)
+                    keep[cols] = True
+                    gr[:, ~keep] = 0.0
+                pa.grad, pb.grad = gr.clone(), gr.clone()
+            trajectory._note_touched(K, cols)
+            dense.step()
+            lazy.step()
+    finally:
+        lazy_adam.READ_CATCH_UP = old
+    return worst / moved, lazy
+
+
+def test_a_render_reads_what_dense_adam_would_have_left_there():
+    """With the read catch-up a curve evaluation reads, to rounding, dense Adam's values, not where
+    the columns' last touch left them (without it they lag by the skipped steps' momentum)."""
+    fresh, lazy = _read_and_step(True)
+    assert fresh < 1e-4 and lazy.caught_up > 0
+    stale, lazy = _read_and_step(False)
+    assert stale > 1e-2 and lazy.caught_up == 0
+
+
+def test_a_promise_of_no_inner_reads_broken_goes_back_to_dense():
+    """A run that promised renders at RGB instants only (dense_inner_below) steps its short curves
+    lazily; the first step that reads an inner column settles them and steps them whole from then on."""
+    a = _params()
+    groups = [{"params": [p], "lr": 1e-2, "name": f"g{i}"} for i, p in enumerate(a)]
+    opt = LazyCurveAdam(groups, min_columns=0, dense_inner_below=40, lr=0.0, eps=1e-15)
+    opt.curves.update({"g1", "g2"})
+    for cols in ([3], [6], [3]):  # junctions only: lazy
+        for p in a:
+            p.grad = torch.ones_like(p)
+        trajectory._note_touched(K, cols)
+        opt.step()
+    assert opt.lazy_for(a[1]) and opt.last_columns(a[1]).tolist() == [3]
+    for p in a:
+        p.grad = torch.ones_like(p)
+    trajectory._note_touched(K, [3, 4, 5, 6])  # a between-instant read
+    opt.step()
+    assert opt.min_columns == 40 and not opt.lazy_for(a[1])
+    assert (opt._cols[id(a[1])][1] == 3).all()  # settled to the step before the switch, then dense
+
+
+@pytest.mark.slow
+def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture):
+    """An RGB-only run renders only at RGB instants: every curve is stepped lazily (lazy_rgb_only),
+    the inner columns are never read and stay zero, and the reads catch their columns up; a full
+    run, a run with still frames between the instants, or the switch off keep the short curves whole."""
+    from engine.io.capture import load_capture
+    from engine.train.spike_flow import close_flow_worker
+    from engine.train.trainer import Trainer
+    from tests.test_quiet_curves import _TINY
+
+    cap = load_capture(demo_capture)
+    cfg = {**_TINY, "iterations": 40, "static_fraction": 0.1}
+
+    def trainer(rgb_only=True, **over):
+        tr = Trainer(cap, get_preset("fast", {**cfg, **over}), device="cpu", rgb_only=rgb_only)
+        tr.init_model()
+        return tr
+
+    tr = trainer()
+    g = tr.model.gaussians
+    assert g.instants_only
+    for step in range(cfg["iterations"]):
+        tr.step(step)
+    opt, curve = g.optimizer, getattr(g, TRAJ_MEANS)
+    assert opt.lazy_for(curve) and curve.shape[1] < 40 and "traj_reg" not in tr.last_losses
+    assert opt.caught_up > 0 and opt.min_columns == 0
+    g.settle()
+    assert float(curve.detach()[:, 1::3].abs().max()) == 0.0 and float(curve.detach()[:, 2::3].abs().max()) == 0.0
+    from engine.scene.model import Model4D
+    back = Model4D.from_state(tr.model.state(), tr.cfg).gaussians  # a resumed run keeps the promise
+    assert back.instants_only and back.optimizer.min_columns == 0
+    off = trainer(lazy_rgb_only=False).model.gaussians.optimizer
+    assert (off.min_columns, off.dense_inner_below) == (40, 0)  # short curves whole, as exact
+    assert not trainer(still_weight=0.5).model.gaussians.instants_only
+    full = trainer(rgb_only=False)
+    try:
+        assert not full.model.gaussians.instants_only
+        assert (full.model.gaussians.optimizer.min_columns, full.model.gaussians.optimizer.dense_inner_below) == (40, 0)
+    finally:
+        close_flow_worker(full)

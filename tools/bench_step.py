@@ -413,6 +413,12 @@ VARIANTS = {
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
+    "rgb-dense": {"doc": "lazy_rgb_only=False: an RGB-only run's curves under lazy_min_columns steps whole by "
+                         "FusedAdam, as before the read catch-up (dense Adam to rounding either way)",
+                  "hexplane_sampler": "auto", "overrides": {"lazy_rgb_only": False}},
+    "reads-stale": {"doc": "a render reads a lazy curve column where its last touch left it, the skipped steps' "
+                           "momentum landing at the next touch (lazy_adam.READ_CATCH_UP=False), as before",
+                    "hexplane_sampler": "auto", "patches": {(lazy_adam, "READ_CATCH_UP"): False}},
 }
 VARIANTS["long-before"] = {"doc": "grad-fresh and curves-serial together: the curves' step before the work for long "
                                   "captures (same numbers)", "hexplane_sampler": "auto",

@@ -194,6 +194,12 @@ class GaussianModel(nn.Module):
         return lr * self.extent * scale if name in getattr(self, "extra_position_like", set()) else lr
 
     # ------------------------------------------------------------------ optimiser
+    # Set by the trainer before setup_optimizer: every render that trains this model is at an RGB
+    # instant (an RGB-only run without synthetic frames), so the curves' inner control points get no
+    # gradient and stay zero (no prior acts on them), and gaussian_adam=auto with lazy_rgb_only
+    # steps every curve lazily (engine.scene.lazy_adam), whatever its length
+    instants_only = False
+
     def setup_optimizer(self, cfg, extent: float) -> None:
         self.extent = float(extent)
         lrs = {"means": cfg.lr_means * self.extent, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
@@ -209,7 +215,10 @@ class GaussianModel(nn.Module):
             raise ValueError(f"unknown gaussian_adam {opt!r}; choose exact, selective, lazy or auto")
         if opt in ("lazy", "auto"):
             least = int(getattr(cfg, "lazy_min_columns", 0)) if opt == "auto" else 0
-            self.optimizer = LazyCurveAdam(groups, min_columns=least, lr=0.0, eps=1e-15)
+            below = least if self.instants_only and getattr(cfg, "lazy_rgb_only", False) else 0
+            # below: the inner columns are never read, so lazy with read catch-up is dense Adam to rounding
+            self.optimizer = LazyCurveAdam(groups, min_columns=0 if below else least, dense_inner_below=below,
+                                           lr=0.0, eps=1e-15)
         else:
             self.optimizer = (SelectiveAdam if opt == "selective" else FusedAdam)(groups, lr=0.0, eps=1e-15)
         self._lr_means = (cfg.lr_means * self.extent, cfg.lr_means_final * self.extent)
@@ -421,6 +430,7 @@ class GaussianModel(nn.Module):
             "grad_count": self.grad_count.cpu(),
             "optimizer": self.optimizer.state_dict() if self.optimizer is not None else None,
             "lr_means": getattr(self, "_lr_means", None),
+            "instants_only": bool(self.instants_only),
         }
 
     @classmethod
@@ -439,6 +449,7 @@ class GaussianModel(nn.Module):
         m.extent = float(state.get("extent", 1.0))
         m.optimizer = None
         m._reset_stats()
+        m.instants_only = bool(state.get("instants_only", False))
         if state.get("grad_accum") is not None and state["grad_accum"].shape[0] == m.num_gaussians:
             m.grad_accum = state["grad_accum"].to(device)
             m.grad_count = state["grad_count"].to(device)

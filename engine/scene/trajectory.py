@@ -49,37 +49,18 @@ import torch
 
 from ..numba_cache import LazyKernels
 from . import grad_buffers
+from .curve_reads import _TOUCHED, _note_touched, before_read, clear_touched, on_read, touched_columns  # noqa: F401
 
 KERNELS = LazyKernels(__package__, "_trajectory_kernels")  # the residual-square term's numba pair
 
 __all__ = ["num_controls", "num_knots", "segment_of", "segment_weights", "bezier_controls", "evaluate",
            "evaluate_reference", "junctions", "extrapolate_junctions", "inner_residuals", "inner_residual_sq",
-           "default_knots", "touched_columns", "clear_touched", "gradient_sink", "sunk", "zeros_then"]
+           "default_knots", "touched_columns", "clear_touched", "gradient_sink", "sunk", "zeros_then", "on_read",
+           "before_read"]
 
 # "fast": :func:`evaluate` uses the column-weight form (:class:`_CurveAt`); "torch": the
 # reference slice-by-slice code (bench-step's "traj-reference" variant switches it)
 EVALUATOR = "fast"
-
-# Control-point columns that :func:`evaluate` read for a gradient since :func:`clear_touched`,
-# per curve length ``K``: {K: {column}}. The selective optimizer (engine.scene.selective_adam)
-# updates only these columns of the curves; it clears the record after each step.
-_TOUCHED: dict[int, set[int]] = {}
-
-
-def _note_touched(n_controls: int, cols) -> None:
-    _TOUCHED.setdefault(int(n_controls), set()).update(int(c) for c in cols)
-
-
-def touched_columns(n_controls: int) -> list[int] | None:
-    """Ascending columns of [N, ``n_controls``, C] curves that an :func:`evaluate` under
-    autograd read since the last :func:`clear_touched` (None: none)."""
-    cols = _TOUCHED.get(int(n_controls))
-    return sorted(cols) if cols else None
-
-
-def clear_touched() -> None:
-    _TOUCHED.clear()
-
 
 def num_controls(n_knots: int) -> int:
     """``K`` parameter entries for ``n_knots`` knots (1 knot: a constant offset)."""
@@ -404,6 +385,7 @@ def evaluate(params: torch.Tensor, knot_times, t: float) -> torch.Tensor:
     k = _knots(knot_times)
     _check(params, k)
     cols, weights = zip(*segment_weights(k, t))
+    before_read(params, cols)
     if params.requires_grad and torch.is_grad_enabled():
         _note_touched(params.shape[1], cols)
     return _CurveAt.apply(params, cols, weights)
@@ -413,6 +395,7 @@ def evaluate_reference(params: torch.Tensor, knot_times, t: float) -> torch.Tens
     """:func:`evaluate` from column slices of ``params`` (plain torch autograd): the reference."""
     k = _knots(knot_times)
     _check(params, k)
+    before_read(params, [c for c, _ in segment_weights(k, t)])
     if params.requires_grad and torch.is_grad_enabled():
         _note_touched(params.shape[1], [c for c, _ in segment_weights(k, t)])
     if len(k) == 1:

@@ -108,6 +108,9 @@ def motion_frames(model: Model4D, t: float, idx: torch.Tensor, static: torch.Ten
     moving = None if static is None else ~static[idx]
     if model.use_deformation and model.trajectory is not None:
         knots = model.trajectory["knots"]
+        cols = [c for c, _ in traj.segment_weights(knots, t)]
+        for name in (TRAJ_MEANS, TRAJ_QUATS):  # row subsets: the whole curves' read hook (lazy Adam)
+            traj.before_read(getattr(g, name), cols)
         dm = traj.evaluate(getattr(g, TRAJ_MEANS)[idx], knots, t)
         dq = traj.evaluate(getattr(g, TRAJ_QUATS)[idx], knots, t)
         if moving is not None:

@@ -202,6 +202,13 @@ def _rigidity(ctx: StepContext):
 MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")
 
 
+def renders_at_instants_only(cfg: TrainConfig, items, rgb_only: bool) -> bool:
+    """Whether every render that trains a run is at an RGB instant: RGB-only (no spike terms), no
+    synthetic frames between the instants (the Interpolate baseline's) and no still hold (it renders
+    between them). Then no loss reads the curves' inner control points (``GaussianModel.instants_only``)."""
+    return bool(rgb_only) and not cfg.still_weight > 0 and all(it.get("knot", True) for it in items)
+
+
 def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
     terms = [LossTerm("l1", 1.0 - cfg.lambda_dssim, _l1)]
     if cfg.lambda_dssim > 0:

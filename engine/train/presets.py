@@ -42,13 +42,18 @@ class TrainConfig:
     # SelectiveAdam / Taming 3DGS, engine.scene.selective_adam). Not the default: 1000 fast steps,
     # seeds 0 / 1, demo / between / fast, moving pixels at the train views -0.43 / -0.16 / -0.31 dB
     # (eval views +0.22 / -0.03 / -0.12) for an RGB step 1.09x faster (README, Selective Adam)
-    # | lazy (the curves' touched columns, each caught up on the steps it skipped: dense Adam to
-    # rounding, the skipped momentum landing at the next touch; engine.scene.lazy_adam) | auto
-    # (lazy for curves of at least lazy_min_columns columns, FusedAdam below: README, "Lazy curve Adam")
+    # | lazy (the curves' touched columns, each caught up on the steps it skipped, and a render's
+    # columns before it reads them: dense Adam to rounding but for the inner-residual prior on untouched
+    # columns; engine.scene.lazy_adam) | auto (lazy for curves of at least lazy_min_columns columns, and
+    # for every curve under lazy_rgb_only; FusedAdam otherwise: README, "Lazy curve Adam")
     gaussian_adam: str = "auto"
     # gaussian_adam=auto: curves of at least this many control-point columns (K = 3 (F - 1) + 1 for F
     # RGB instants) take the lazy step (engine.scene.lazy_adam), shorter ones FusedAdam's
     lazy_min_columns: int = 40
+    # ... and every curve in an RGB-only run whose every frame is an RGB instant: its renders never read
+    # the inner columns, so with the read catch-up the lazy step is dense Adam to rounding (README,
+    # "Lazy curve Adam, reads caught up")
+    lazy_rgb_only: bool = True
 
     # ---- densification (3DGS rules, schedule in fractions of `iterations`) ---------------
     densify_from: float = 0.05

@@ -244,6 +244,8 @@ class QuietCurves:
         self._applied = now
         if settles is not None:
             g.on_settle(self.after_settle)
+        if hasattr(g.optimizer, "on_catch_up"):
+            g.optimizer.on_catch_up(self.after_catch_up)
 
     def after_settle(self, g) -> None:
         """A lazy optimiser's settle moved every column (the skipped steps' momentum): hold the
@@ -251,6 +253,17 @@ class QuietCurves:
         hit = self._mask
         if hit is not None and hit[1] == g.num_gaussians and hit[4] == id(getattr(g, TRAJ_MEANS)):
             self._apply(g, local=False)
+
+    def after_catch_up(self, params: torch.Tensor, cols) -> None:
+        """A lazy optimiser brought columns ``cols`` of a curve up to its last step before a render
+        reads them (the skipped steps' momentum): hold their quiet segments at zero first, as the
+        dense step's mask application would have."""
+        hit = self._mask
+        if hit is None or hit[1] != params.shape[0]:
+            return
+        zero_quiet_columns(params, hit[2], cols, hit[3])
+        if self.cfg.quiet_junctions:
+            tie_junctions(params, hit[3].setdefault("groups", junction_groups(hit[2])))
 
     def _apply(self, g, local: bool) -> None:
         quiet, keeps = self._mask[2], self._mask[3]

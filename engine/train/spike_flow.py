@@ -128,9 +128,11 @@ def inner_only_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.T
         inner = torch.ones(sub.shape[1], dtype=torch.bool, device=sub.device)
         inner[0::3] = False
         sub = torch.where(inner[None, :, None], sub, sub.detach())
+        traj.before_read(params, [c for c, _ in traj.segment_weights(knots, t)])
         return g.means.detach()[idx] + traj.evaluate(sub, knots, t)
     traj._check(params, traj._knots(knots))
     cols, weights = zip(*traj.segment_weights(knots, t))
+    traj.before_read(params, cols)
     if params.requires_grad and torch.is_grad_enabled():
         traj._note_touched(params.shape[1], [c for c in cols if c % 3])  # the inner ones get its gradient
     return _InnerAt.apply(params, g.means.detach()[idx], idx, cols, weights)
@@ -149,10 +151,12 @@ def subset_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tenso
     if traj.EVALUATOR != "torch" and _fused_inner(params, base, idx):
         traj._check(params, traj._knots(knots))
         cols, weights = zip(*traj.segment_weights(knots, t))
+        traj.before_read(params, cols)
         out = torch.empty_like(base)
         traj.KERNELS.module.inner_at(params.detach().numpy(), base.numpy(), idx.numpy(), np.asarray(cols, np.int64),
                                      np.asarray(weights, _NP[params.dtype]), out.numpy())
         return out
+    traj.before_read(params, [c for c, _ in traj.segment_weights(knots, t)])
     return base + traj.evaluate(params.detach()[idx], knots, t)
 
 

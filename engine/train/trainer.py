@@ -52,7 +52,7 @@ from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
 from .geometry_losses import geometry_post_step_hooks, step_background
-from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms, frame_item_fields
+from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms, frame_item_fields, renders_at_instants_only
 from .presets import TrainConfig, block_weight
 from .quiet_curves import quiet_curves_factory
 from .schedule import Schedule
@@ -194,9 +194,7 @@ class Trainer:
                            lambda self, n: setattr(self, "schedule", Schedule.plan(n)),
                            doc="Real steps planned; setting it plans afresh (mid-run re-plans: schedule.replan)")
 
-    @property
-    def static_steps(self) -> int:
-        return self.schedule.static_steps(self.cfg.static_fraction)
+    static_steps = property(lambda self: self.schedule.static_steps(self.cfg.static_fraction))
 
     def stage_of(self, step: int) -> str:
         return "static" if step < self.static_steps else "deform"
@@ -249,6 +247,7 @@ class Trainer:
         # of the points that are not backdrop (None without one: bounds as before, bit-identical)
         self.field_box = None if core is pts.xyz else (core.min(0).tolist(), core.max(0).tolist())
         g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=self.device)
+        g.instants_only = renders_at_instants_only(cfg, self.items, self.rgb_only)  # lazy curves: lazy_rgb_only
         g.setup_optimizer(cfg, self.extent)
         self.model = Model4D(g, None, background=cfg.background, near_plane=near_plane_for_extent(self.extent))
         self.model.use_deformation = False
