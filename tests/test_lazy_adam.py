@@ -483,3 +483,30 @@ def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture
         assert (full.model.gaussians.optimizer.min_columns, full.model.gaussians.optimizer.dense_inner_below) == (40, 0)
     finally:
         close_flow_worker(full)
+
+
+def test_a_read_catches_up_the_values_alone_with_the_same_numbers():
+    """The read's catch-up moves the values and leaves the moments (their decay waits for the column's
+    next step or settle, which write them anyway); the training is the same as when the read also
+    decayed and wrote them, including columns read at several steps between touches."""
+    runs = {}
+    for values_only in (True, False):
+        old = lazy_adam.READ_VALUES_ONLY
+        lazy_adam.READ_VALUES_ONLY = values_only
+        try:
+            _, lazy = _read_and_step(True, steps=80)
+            p = next(q for grp in lazy.param_groups for q in grp["params"] if q.dim() == 3)
+            m_before = lazy.state[p]["exp_avg"].clone()
+            cols = [c for c in range(K) if lazy._cols[id(p)][2][c] < int(lazy.state[p]["step"].item())]
+            assert cols
+            trajectory.before_read(p, cols[:1])  # a read between touches (no gradient follows)
+            if values_only:
+                assert torch.equal(lazy.state[p]["exp_avg"], m_before)
+            lazy.settle()
+            runs[values_only] = [q.detach().clone() for grp in lazy.param_groups for q in grp["params"]] + [
+                lazy.state[q][key].clone() for grp in lazy.param_groups for q in grp["params"]
+                for key in ("exp_avg", "exp_avg_sq")]
+        finally:
+            lazy_adam.READ_VALUES_ONLY = old
+    for x, y in zip(runs[True], runs[False]):
+        np.testing.assert_allclose(x.numpy(), y.numpy(), rtol=1e-5, atol=1e-7)

@@ -413,6 +413,9 @@ VARIANTS = {
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
+    "read-moments": {"doc": "a read's catch-up also decays and writes the moments (lazy_adam.READ_VALUES_ONLY="
+                            "False), as first built (same numbers)", "hexplane_sampler": "auto",
+                     "patches": {(lazy_adam, "READ_VALUES_ONLY"): False}},
     "rgb-dense": {"doc": "lazy_rgb_only=False: an RGB-only run's curves under lazy_min_columns steps whole by "
                          "FusedAdam, as before the read catch-up (dense Adam to rounding either way)",
                   "hexplane_sampler": "auto", "overrides": {"lazy_rgb_only": False}},

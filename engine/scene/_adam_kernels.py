@@ -237,11 +237,13 @@ def selective_update(p, runs, n_runs, root, m_new, zero, bc2s, eps, neg_step):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def lazy_step(p, g, m, v, D, C, cols, coast, d1, d2, w1, b2, c2, has_grad, decay, bc2s, eps, neg_step, clear):
+def lazy_step(p, g, m, v, D, C, cols, coast, d1, d2, w1, b2, c2, has_grad, decay, bc2s, eps, neg_step, clear,
+              write_mv):
     """Catch-up, then (``has_grad``) Adam at columns ``cols`` of every row, the gradient of the
     inner columns (``col % 3``) plus ``decay`` times the parameter (the inner-residual prior's,
     folded in); ``clear``: the gradient's entries set to zero once read (a kept gradient buffer,
-    engine.scene.grad_buffers, zeroed in the pass that has its lines in the cache)."""
+    engine.scene.grad_buffers, zeroed in the pass that has its lines in the cache); ``write_mv``
+    False: the moments are read, not written (a read's catch-up of the values alone)."""
     one = np.float32(1.0)
     zf = np.float32(0.0)
     low = abs(w1) < np.float32(0.5)  # torch's lerp: two formulas around weight 0.5
@@ -286,6 +288,7 @@ def lazy_step(p, g, m, v, D, C, cols, coast, d1, d2, w1, b2, c2, has_grad, decay
                     vi = _fma32(c2 * gi, gi, vi * b2)
                     sq = np.sqrt(vi) if vi != zf else zf
                     pn = pn + (neg_step * mi) / (sq / bc2s + eps)
-                m[i] = mi
-                v[i] = vi
+                if write_mv:
+                    m[i] = mi
+                    v[i] = vi
                 p[i] = pn

@@ -66,6 +66,10 @@ CLEAR_BUFFERS = True
 # landing at its next touch (the first version: train views -0.08 dB on average over eight
 # 1000-step runs, README "Lazy curve Adam"); True: the read catches the column up first
 READ_CATCH_UP = True
+# False: the read's catch-up also decays the moments (and writes them), as first built; True: the
+# values alone, the moments' decay left to the column's next step or settle (same numbers: the decay
+# is the same product either way)
+READ_VALUES_ONLY = True
 HORIZON = 600  # skipped steps summed: r^600 = (0.9 / 0.9995)^600 ~ 4e-28
 
 
@@ -83,7 +87,9 @@ class LazyCurveAdam(FusedAdam):
         # class goes back to dense (settled first), since the prior would then act on untouched columns
         self.dense_inner_below = int(dense_inner_below)
         self._a: dict[str, list[float]] = {}      # group name -> a_u for u = 1, 2, .. (index u - 1)
-        self._cols: dict[int, tuple] = {}          # id(param) -> (weakref, int64 [K]: step the column is at)
+        # id(param) -> (weakref, int64 [K]: step the column's moments are at, int64 [K]: step its values are
+        # at, never behind the moments: a read catches the values up alone, the moments' decay waits for a step)
+        self._cols: dict[int, tuple] = {}
         self.last_touched: int | None = None       # columns updated by the last step (tools, tests)
         # group name -> w / extent^2 of the inner-residual prior w mean|D|^2 / extent^2, whose
         # gradient on the touched inner columns the step adds itself (the loss term sets it)
@@ -102,8 +108,13 @@ class LazyCurveAdam(FusedAdam):
             if hit is None or hit[0]() is not p:  # once per tensor: a hook registered again would stay too
                 p.register_hook(functools.partial(_foreign, weakref.ref(self), id(p)))
                 trajectory.on_read(p, functools.partial(_read_hook, weakref.ref(self)))
-            hit = self._cols[id(p)] = (weakref.ref(p), np.full(p.shape[1], step, np.int64))
+            hit = self._cols[id(p)] = (weakref.ref(p), np.full(p.shape[1], step, np.int64),
+                                       np.full(p.shape[1], step, np.int64))
         return hit[1]
+
+    def _value_steps(self, p: torch.Tensor) -> np.ndarray:
+        """The step each column's values are at (after :meth:`_column_steps` made the record)."""
+        return self._cols[id(p)][2]
 
     def _record_a(self, g: dict, step: int) -> list[float]:
         beta1, beta2 = g["betas"]
@@ -114,9 +125,10 @@ class LazyCurveAdam(FusedAdam):
             a.append(float(g["lr"]) * math.sqrt(1 - beta2 ** u) / (1 - beta1 ** u))
         return a
 
-    def _coast(self, g: dict, since: np.ndarray, upto: int) -> tuple:
-        """Per column, for the steps ``since + 1 .. upto`` it skipped: (their count s, the momentum
-        factor sum_{j<=s} a_{since+j} r^j, beta1^s, beta2^s)."""
+    def _coast(self, g: dict, since: np.ndarray, upto: int, moved_to: np.ndarray | None = None) -> tuple:
+        """Per column, for the steps ``since + 1 .. upto`` it skipped (its moments at ``since``): (their
+        count s, the momentum factor sum_{j<=s} a_{since+j} r^j over the steps after ``moved_to``, the
+        step its values are already at (None: ``since``), beta1^s, beta2^s)."""
         beta1, beta2 = g["betas"]
         r = beta1 / math.sqrt(beta2)
         a = self._a.get(g["name"], [])
@@ -124,8 +136,11 @@ class LazyCurveAdam(FusedAdam):
         total = np.zeros(s.shape[0], np.float64)
         for k in np.nonzero(s > 0)[0]:
             t0, n = int(since[k]), int(min(s[k], HORIZON))
-            seg = np.asarray(a[t0:t0 + n], np.float64)  # a_{t0+1} .. a_{t0+n}
-            total[k] = float(np.dot(seg, r ** np.arange(1, seg.shape[0] + 1)))
+            j0 = 1 if moved_to is None else int(moved_to[k]) - t0 + 1  # the first step not yet moved
+            if j0 > n:
+                continue
+            seg = np.asarray(a[t0 + j0 - 1:t0 + n], np.float64)  # a_{t0+j0} .. a_{t0+n}
+            total[k] = float(np.dot(seg, r ** np.arange(j0, j0 + seg.shape[0])))
         return s, total, np.power(beta1, s.astype(np.float64)), np.power(beta2, s.astype(np.float64))
 
     # ---- the step -------------------------------------------------------------------------
@@ -164,7 +179,7 @@ class LazyCurveAdam(FusedAdam):
                     cols = np.arange(p.shape[1])
                 cols = np.asarray(cols, np.int64)
                 touched_total += cols.size
-                _update_columns(p, p.grad, m, v, cols, at, step, g, self, self._decay(g, p))
+                _update_columns(p, p.grad, m, v, cols, at, step, g, self, self._decay(g, p), self._value_steps(p))
                 self._last_cols[id(p)] = (weakref.ref(p), cols)
         self.last_touched = touched_total
         self._foreign.clear()
@@ -220,13 +235,16 @@ class LazyCurveAdam(FusedAdam):
         if hit is None or hit[0]() is not p or not state or hit[1].shape[0] != p.shape[1]:
             return 0
         step = int(state["step"].item())
-        at = hit[1]
+        at, moved = hit[1], hit[2]
         cols = np.asarray(cols, np.int64)
-        behind = np.unique(cols[at[cols] < step])
+        behind = np.unique(cols[moved[cols] < step])
         if not behind.size:
             return 0
         g = next(grp for grp in self.param_groups if any(q is p for q in grp["params"]))
-        _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self)
+        # the values alone (the read needs them): the moments' decay is left to the column's next
+        # step or settle, which reads and writes them anyway (a third less memory traffic here)
+        _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self, 0.0, moved,
+                        moments=not READ_VALUES_ONLY)
         self.caught_up += int(behind.size)
         for ref in list(self._catch_up_hooks):
             fn = ref()
@@ -254,7 +272,8 @@ class LazyCurveAdam(FusedAdam):
                 at = self._column_steps(p, step)
                 behind = np.nonzero(at < step)[0]
                 if behind.size:
-                    _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self)
+                    _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self, 0.0,
+                                    self._value_steps(p))
                     moved = True
         self.settles += 1  # whoever settles may write next: a hook applying a mask must redo it whole
         return moved
@@ -277,18 +296,25 @@ def _read_hook(opt_ref, p: torch.Tensor, cols) -> None:
 
 
 def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, g: dict, opt: LazyCurveAdam,
-                    decay: float = 0.0) -> None:
-    """Columns ``cols`` of curve ``p``: catch up from ``at[cols]`` to ``step - 1`` (``grad``
-    given: then this step's Adam update, ``decay`` times the parameter added to the inner
-    columns' gradient) or to ``step`` (``grad`` None: settle)."""
+                    decay: float = 0.0, moved: np.ndarray | None = None, moments: bool = True) -> None:
+    """Columns ``cols`` of curve ``p``: catch up from ``at[cols]`` (the moments' step; the values
+    from ``moved[cols]``, None: the same) to ``step - 1`` (``grad`` given: then this step's Adam
+    update, ``decay`` times the parameter added to the inner columns' gradient) or to ``step``
+    (``grad`` None: settle; ``moments`` False: the values alone, a read's catch-up)."""
     beta1, beta2 = g["betas"]
     upto = step - 1 if grad is not None else step
-    s, coast, d1, d2 = opt._coast(g, at[cols], upto)
+    s, coast, d1, d2 = opt._coast(g, at[cols], upto, None if moved is None else moved[cols])
     f32 = np.float32
+
+    def done():
+        if moments:
+            at[cols] = step
+        if moved is not None:
+            moved[cols] = step
     if grad is not None and not decay and cols.size == p.shape[1] and not (s > 0).any():
         # every column, none behind: the dense update (FusedAdam's pass: torch's Adam bit for bit)
         opt._dense_update(g, p, m, v, float(step))
-        at[cols] = step
+        done()
         return
     k = KERNELS.load() if FUSED else None
     if k is not None and _fusable(p, grad, m, v):
@@ -300,14 +326,15 @@ def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, 
         clear = grad is not None and CLEAR_BUFFERS and grad_buffers.holds(p, grad)
         k.lazy_step(pf, gf, mf, vf, kk * c, c, cols, coast.astype(f32), d1.astype(f32), d2.astype(f32),
                     f32(1 - beta1), f32(beta2), f32(1 - beta2), grad is not None, f32(decay),
-                    f32(math.sqrt(1 - beta2 ** step)), f32(g["eps"]), f32(-float(g["lr"]) / (1 - beta1 ** step)), clear)
+                    f32(math.sqrt(1 - beta2 ** step)), f32(g["eps"]), f32(-float(g["lr"]) / (1 - beta1 ** step)), clear,
+                    moments)
         if clear:
             grad_buffers.cleaned(p, cols)
-        at[cols] = step
+        done()
         return
     reference_columns(p, grad, m, v, cols, s, coast, d1, d2, step, float(g["lr"]), (beta1, beta2), float(g["eps"]),
-                      decay)
-    at[cols] = step
+                      decay, moments)
+    done()
 
 
 def _fusable(p, grad, m, v) -> bool:
@@ -317,7 +344,7 @@ def _fusable(p, grad, m, v) -> bool:
 
 
 def reference_columns(p, grad, m, v, cols, s, coast, d1, d2, step: int, lr: float, betas, eps: float,
-                      decay: float = 0.0) -> None:
+                      decay: float = 0.0, moments: bool = True) -> None:
     """Plain-torch lazy update of columns ``cols`` (the tests' reference and the fallback):
     catch-up (``s`` skipped steps, ``coast`` their summed momentum factor, ``d1``/``d2`` the
     moments' decay), then torch's single-tensor Adam formulas with ``grad`` (None: none) plus
@@ -340,8 +367,9 @@ def reference_columns(p, grad, m, v, cols, s, coast, d1, d2, step: int, lr: floa
             gc = torch.where(inner, gc + np.float32(decay) * stale, gc)
         torch_adam_update(pc, gc, mc, vc, step, lr, betas, eps)
     p.data[:, idx] = pc
-    m[:, idx] = mc
-    v[:, idx] = vc
+    if moments:
+        m[:, idx] = mc
+        v[:, idx] = vc
 
 
 def warmup() -> float:
