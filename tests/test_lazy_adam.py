@@ -43,18 +43,26 @@ def _run(steps: int, touch, seed=3):
         for opt in (dense, lazy):
             for i, grp in enumerate(opt.param_groups):
                 grp["lr"] = 10.0 ** -(i + 1) * 0.995 ** step
-        gen = torch.Generator().manual_seed(100 + step)
-        for pa, pb in zip(a, b):
-            gr = torch.randn(pa.shape, generator=gen) * (torch.rand(pa.shape, generator=gen) < 0.7)
-            if pa.dim() == 3:
-                keep = torch.zeros(K, dtype=torch.bool)
-                keep[cols] = True
-                gr[:, ~keep] = 0.0
-            pa.grad, pb.grad = gr.clone(), gr.clone()
-        trajectory._note_touched(K, cols)
-        dense.step()
-        lazy.step()
+        _step_both(a, b, dense, lazy, cols, step, sparse=True)
     return a, b, dense, lazy
+
+
+def _step_both(a, b, dense, lazy, cols, step: int, sparse: bool) -> None:
+    """One step of both optimizers on the same random gradients (``sparse``: 30 % of the entries
+    zero), the curves' zero outside columns ``cols``, which the step records as touched."""
+    gen = torch.Generator().manual_seed(100 + step)
+    for pa, pb in zip(a, b):
+        gr = torch.randn(pa.shape, generator=gen)
+        if sparse:
+            gr = gr * (torch.rand(pa.shape, generator=gen) < 0.7)
+        if pa.dim() == 3:
+            keep = torch.zeros(K, dtype=torch.bool)
+            keep[cols] = True
+            gr[:, ~keep] = 0.0
+        pa.grad, pb.grad = gr.clone(), gr.clone()
+    trajectory._note_touched(K, cols)
+    dense.step()
+    lazy.step()
 
 
 def test_every_column_touched_is_fused_adam_bit_for_bit():
@@ -397,17 +405,7 @@ def _read_and_step(catch_up: bool, steps: int = 150):
                     ya, yb = trajectory.evaluate(pa, knots, t), trajectory.evaluate(pb, knots, t)
                     worst = max(worst, float((ya - yb).abs().max()))
             moved = max(moved, float((a[1] - _params()[1]).detach().abs().max()))
-            gen = torch.Generator().manual_seed(100 + step)
-            for pa, pb in zip(a, b):
-                gr = torch.randn(pa.shape, generator=gen)
-                if pa.dim() == 3:
-                    keep = torch.zeros(K, dtype=torch.bool)
-                    keep[cols] = True
-                    gr[:, ~keep] = 0.0
-                pa.grad, pb.grad = gr.clone(), gr.clone()
-            trajectory._note_touched(K, cols)
-            dense.step()
-            lazy.step()
+            _step_both(a, b, dense, lazy, cols, step, sparse=False)
     finally:
         lazy_adam.READ_CATCH_UP = old
     return worst / moved, lazy
