@@ -101,7 +101,9 @@ class LazyCurveAdam(FusedAdam):
         self._catch_up_hooks: list = []  # weak fn(param, columns) after a read catch-up (QuietCurves)
 
     # ---- bookkeeping ----------------------------------------------------------------------
-    def _column_steps(self, p: torch.Tensor, step: int) -> np.ndarray:
+    def _column_steps(self, p: torch.Tensor, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """(the step each column's moments are at, the step its values are at) of curve ``p``: the
+        record, made at ``step`` for a new tensor."""
         hit = self._cols.get(id(p))
         if hit is None or hit[0]() is not p or hit[1].shape[0] != p.shape[1]:
             # a new tensor (densification swaps them after settle()): every column is current
@@ -110,11 +112,10 @@ class LazyCurveAdam(FusedAdam):
                 trajectory.on_read(p, functools.partial(_read_hook, weakref.ref(self)))
             hit = self._cols[id(p)] = (weakref.ref(p), np.full(p.shape[1], step, np.int64),
                                        np.full(p.shape[1], step, np.int64))
-        return hit[1]
+        return hit[1], hit[2]
 
-    def _value_steps(self, p: torch.Tensor) -> np.ndarray:
-        """The step each column's values are at (after :meth:`_column_steps` made the record)."""
-        return self._cols[id(p)][2]
+    def _group_of(self, p: torch.Tensor) -> dict | None:
+        return next((grp for grp in self.param_groups if any(q is p for q in grp["params"])), None)
 
     def _record_a(self, g: dict, step: int) -> list[float]:
         beta1, beta2 = g["betas"]
@@ -125,10 +126,10 @@ class LazyCurveAdam(FusedAdam):
             a.append(float(g["lr"]) * math.sqrt(1 - beta2 ** u) / (1 - beta1 ** u))
         return a
 
-    def _coast(self, g: dict, since: np.ndarray, upto: int, moved_to: np.ndarray | None = None) -> tuple:
+    def _coast(self, g: dict, since: np.ndarray, upto: int, moved_to: np.ndarray) -> tuple:
         """Per column, for the steps ``since + 1 .. upto`` it skipped (its moments at ``since``): (their
         count s, the momentum factor sum_{j<=s} a_{since+j} r^j over the steps after ``moved_to``, the
-        step its values are already at (None: ``since``), beta1^s, beta2^s)."""
+        step its values are already at, beta1^s, beta2^s)."""
         beta1, beta2 = g["betas"]
         r = beta1 / math.sqrt(beta2)
         a = self._a.get(g["name"], [])
@@ -136,7 +137,7 @@ class LazyCurveAdam(FusedAdam):
         total = np.zeros(s.shape[0], np.float64)
         for k in np.nonzero(s > 0)[0]:
             t0, n = int(since[k]), int(min(s[k], HORIZON))
-            j0 = 1 if moved_to is None else int(moved_to[k]) - t0 + 1  # the first step not yet moved
+            j0 = int(moved_to[k]) - t0 + 1  # the first step not yet moved
             if j0 > n:
                 continue
             seg = np.asarray(a[t0 + j0 - 1:t0 + n], np.float64)  # a_{t0+j0} .. a_{t0+n}
@@ -173,13 +174,13 @@ class LazyCurveAdam(FusedAdam):
                 m, v = adam_moments(state, p, "LazyCurveAdam")
                 step = int(state["step"].item())
                 self._record_a(g, step)
-                at = self._column_steps(p, step - 1)
+                at, moved = self._column_steps(p, step - 1)
                 cols = trajectory.touched_columns(p.shape[1])
                 if cols is None or id(p) in self._foreign:  # a reader that says nothing: every column
                     cols = np.arange(p.shape[1])
                 cols = np.asarray(cols, np.int64)
                 touched_total += cols.size
-                _update_columns(p, p.grad, m, v, cols, at, step, g, self, self._decay(g, p), self._value_steps(p))
+                _update_columns(p, p.grad, m, v, cols, at, moved, step, g, self, self._decay(g, p))
                 self._last_cols[id(p)] = (weakref.ref(p), cols)
         self.last_touched = touched_total
         self._foreign.clear()
@@ -194,7 +195,7 @@ class LazyCurveAdam(FusedAdam):
         """Whether ``p`` is updated at its touched columns (a curve of at least
         :attr:`min_columns` columns) rather than whole."""
         if g is None:
-            g = next((grp for grp in self.param_groups if any(q is p for q in grp["params"])), None)
+            g = self._group_of(p)
         return (g is not None and g.get("name") in self.curves and p.dim() == 3
                 and p.shape[1] >= self.min_columns)
 
@@ -240,10 +241,10 @@ class LazyCurveAdam(FusedAdam):
         behind = np.unique(cols[moved[cols] < step])
         if not behind.size:
             return 0
-        g = next(grp for grp in self.param_groups if any(q is p for q in grp["params"]))
+        g = self._group_of(p)
         # the values alone (the read needs them): the moments' decay is left to the column's next
         # step or settle, which reads and writes them anyway (a third less memory traffic here)
-        _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self, 0.0, moved,
+        _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, moved, step, g, self,
                         moments=not READ_VALUES_ONLY)
         self.caught_up += int(behind.size)
         for ref in list(self._catch_up_hooks):
@@ -269,11 +270,10 @@ class LazyCurveAdam(FusedAdam):
                 if not state or not self.lazy_for(p, g):
                     continue
                 step = int(state["step"].item())
-                at = self._column_steps(p, step)
+                at, moved_to = self._column_steps(p, step)
                 behind = np.nonzero(at < step)[0]
                 if behind.size:
-                    _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, step, g, self, 0.0,
-                                    self._value_steps(p))
+                    _update_columns(p, None, state["exp_avg"], state["exp_avg_sq"], behind, at, moved_to, step, g, self)
                     moved = True
         self.settles += 1  # whoever settles may write next: a hook applying a mask must redo it whole
         return moved
@@ -295,22 +295,21 @@ def _read_hook(opt_ref, p: torch.Tensor, cols) -> None:
         opt.catch_up(p, cols)
 
 
-def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, step: int, g: dict, opt: LazyCurveAdam,
-                    decay: float = 0.0, moved: np.ndarray | None = None, moments: bool = True) -> None:
+def _update_columns(p, grad, m, v, cols: np.ndarray, at: np.ndarray, moved: np.ndarray, step: int, g: dict,
+                    opt: LazyCurveAdam, decay: float = 0.0, moments: bool = True) -> None:
     """Columns ``cols`` of curve ``p``: catch up from ``at[cols]`` (the moments' step; the values
-    from ``moved[cols]``, None: the same) to ``step - 1`` (``grad`` given: then this step's Adam
+    from ``moved[cols]``) to ``step - 1`` (``grad`` given: then this step's Adam
     update, ``decay`` times the parameter added to the inner columns' gradient) or to ``step``
     (``grad`` None: settle; ``moments`` False: the values alone, a read's catch-up)."""
     beta1, beta2 = g["betas"]
     upto = step - 1 if grad is not None else step
-    s, coast, d1, d2 = opt._coast(g, at[cols], upto, None if moved is None else moved[cols])
+    s, coast, d1, d2 = opt._coast(g, at[cols], upto, moved[cols])
     f32 = np.float32
 
     def done():
         if moments:
             at[cols] = step
-        if moved is not None:
-            moved[cols] = step
+        moved[cols] = step
     if grad is not None and not decay and cols.size == p.shape[1] and not (s > 0).any():
         # every column, none behind: the dense update (FusedAdam's pass: torch's Adam bit for bit)
         opt._dense_update(g, p, m, v, float(step))

@@ -395,9 +395,10 @@ def evaluate_reference(params: torch.Tensor, knot_times, t: float) -> torch.Tens
     """:func:`evaluate` from column slices of ``params`` (plain torch autograd): the reference."""
     k = _knots(knot_times)
     _check(params, k)
-    before_read(params, [c for c, _ in segment_weights(k, t)])
+    cols = [c for c, _ in segment_weights(k, t)]
+    before_read(params, cols)
     if params.requires_grad and torch.is_grad_enabled():
-        _note_touched(params.shape[1], [c for c, _ in segment_weights(k, t)])
+        _note_touched(params.shape[1], cols)
     if len(k) == 1:
         return params[:, 0]
     i, u = segment_of(k, t)

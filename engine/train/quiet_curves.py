@@ -263,18 +263,23 @@ class QuietCurves:
             return
         zero_quiet_columns(params, hit[2], cols, hit[3])
         if self.cfg.quiet_junctions:
-            tie_junctions(params, hit[3].setdefault("groups", junction_groups(hit[2])))
+            tie_junctions(params, self._groups())
+
+    def _groups(self) -> torch.Tensor:
+        """:func:`junction_groups` of the current mask, built once per mask."""
+        quiet, keeps = self._mask[2], self._mask[3]
+        if "groups" not in keeps:
+            keeps["groups"] = junction_groups(quiet)
+        return keeps["groups"]
 
     def _apply(self, g, local: bool) -> None:
         quiet, keeps = self._mask[2], self._mask[3]
         tie = bool(self.cfg.quiet_junctions)
-        if tie and "groups" not in keeps:
-            keeps["groups"] = junction_groups(quiet)
         for params in (getattr(g, TRAJ_MEANS), getattr(g, TRAJ_QUATS)):
             cols = g.optimizer.last_columns(params) if local and not tie else None
             zero_quiet_columns(params, quiet, cols, keeps)
             if tie:
-                tie_junctions(params, keeps["groups"])
+                tie_junctions(params, self._groups())
 
 
 def quiet_curves_factory(trainer) -> list:
