@@ -92,8 +92,8 @@ class BT4D_SceneSettings(PropertyGroup):
         description="What the crack term may change (engine TrainConfig.cover_grad)")
     early_stop: BoolProperty(
         name="Stop Early", default=False,
-        description="Stop training when the PSNR on a few held-out eval frames stops improving "
-                    "(train frames when the capture has none)")
+        description="Stop training when the PSNR on a few train frames held back from training stops "
+                    "improving (never the eval frames the result is scored on)")
 
     @property
     def has_capture(self) -> bool:

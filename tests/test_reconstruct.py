@@ -244,6 +244,8 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s.freeze_static = False
     assert bpy.ops.bt4d.reconstruct() == {"FINISHED"}
     assert calls[-1]["overrides"] == {"early_stop": True} and calls[-1]["seconds"] == s.seconds
+    # its tooltip says what the engine does: held-back train frames, never the eval frames
+    assert "never the eval frames" in s.bl_rna.properties["early_stop"].description
     # "Motion": the engine's default (first item) passes nothing; another choice is passed
     from engine.train.presets import TrainConfig
     assert s.motion == TrainConfig().motion

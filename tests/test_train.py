@@ -444,6 +444,10 @@ def test_early_stop_holds_back_train_frames_and_never_scores_eval_frames(tiny_ca
     monkeypatch.setattr(cap.eval_frames[0].__class__, "load_rgb",
                         lambda self: (_ for _ in ()).throw(AssertionError("eval frame read")), raising=True)
     assert np.isfinite(es.score(tr.model))
+    # and the CLI's help says so (it promised "held-out eval frames" while the code held back train frames)
+    from engine.cli.train import SKIP_HELP
+    early = SKIP_HELP[SKIP_HELP.index("early_stop=true"):SKIP_HELP.index("cull_frustum=true")]
+    assert "held back from training" in early and "never the eval frames" in early
 
 
 def test_early_stop_is_off_without_a_multi_camera_instant(tiny_capture, tmp_path):

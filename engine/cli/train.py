@@ -42,8 +42,8 @@ skipping what a scene does not need (all off by default; --set KEY=VALUE, e.g.
   freeze_static=true      freeze Gaussians that do not move (CPOStream): they skip the
                           deformation field; tune freeze_k_checks, freeze_motion_eps_px,
                           freeze_wake_residual, freeze_checks_per_stage, freeze_start_fraction
-  early_stop=true         stop when the PSNR on a few held-out eval frames stops improving
-                          (train frames if the capture has none); tune early_stop_patience,
+  early_stop=true         stop when the PSNR on a few train frames held back from training
+                          stops improving (never the eval frames); tune early_stop_patience,
                           early_stop_min_delta, early_stop_every_fraction,
                           early_stop_min_deform_fraction, early_stop_proxy_frames
   cull_frustum=true       prune Gaussians outside every train camera's frustum
