@@ -588,7 +588,7 @@ def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
     from engine.train.budget import reestimate_deform_steps
     from engine.train.trainer import Trainer
 
-    cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
+    cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3, "budget_step_cap": 0})
     tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
     rec = reestimate_deform_steps(tr, 400, 0.01, remaining_s=5.0)    # 500 more steps fit
     assert rec["total_steps"] == 900 and rec["previous_total_steps"] == 1000
@@ -598,6 +598,45 @@ def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
     assert tr.stage_of(400) == "deform" and tr.static_steps == 300
     rec = reestimate_deform_steps(tr, 400, 0.5, remaining_s=-1.0)     # over budget: the next step still runs
     assert rec["total_steps"] == 401
+
+
+def test_budget_plans_at_most_the_step_cap(tiny_capture):
+    """A --seconds budget plans at most budget_step_cap x iterations steps (more overfit the two views:
+    README, "eq16"); cap 0 plans what fits; the deformation stage's re-plans and fills keep to it."""
+    from engine.train.budget import reestimate_deform_steps, step_cap
+    from engine.train.trainer import Trainer
+
+    cfg = get_preset("fast")
+    assert step_cap(cfg) == 2 * cfg.iterations == 2000
+    assert steps_for_budget(1e6, 0.01, 0.01, cfg) == 2000
+    assert steps_for_budget(60, 0.05, 0.1, cfg) < 2000  # a budget under the cap: unchanged
+    assert steps_for_budget(1e6, 0.01, 0.01, cfg.replace(budget_step_cap=0)) > 10 ** 7
+    assert step_cap(cfg.replace(budget_step_cap=0)) is None
+    tr = Trainer(load_capture(tiny_capture), get_preset("fast", {"init": "ply", "iterations": 300}), device="cpu",
+                 total_steps=500)
+    rec = reestimate_deform_steps(tr, 400, 0.001, remaining_s=100.0)  # 1e5 more would fit
+    assert rec["total_steps"] == 600 and rec["capped"] == 600
+    rec = reestimate_deform_steps(tr, 600, 0.001, remaining_s=100.0)  # at the cap: the run may end here
+    assert rec["total_steps"] == 600
+    assert reestimate_deform_steps(tr, 400, 0.5, remaining_s=1.0)["total_steps"] == 402  # under it: as before
+
+
+def test_a_budget_run_the_cap_binds_ends_early_at_the_cap(tiny_capture, tmp_path, monkeypatch):
+    """Cheap steps and a long budget: the run takes cap steps and ends before its budget, saying so."""
+    import time as _time
+
+    monkeypatch.setattr(run_mod, "measure_step_seconds", lambda trainer: (0.002, 0.002))
+
+    def step(self, i):
+        _time.sleep(0.002)
+        return {"loss": 0.0, "psnr": 0.0, "stage": self.stage_of(i), "losses": {}, "densify": {}}
+
+    monkeypatch.setattr(trainer_mod.Trainer, "step", step)
+    s = train(tiny_capture, tmp_path / "run", seconds=8.0,
+              overrides={"init": "ply", "iterations": 40, "budget_step_cap": 2.0, "static_fraction": 0.2})
+    assert s["status"] == "finished" and not s["stopped_by_budget"]
+    assert s["step"] == s["total_steps"] == 80 and s["train_seconds"] < 4.0
+    assert read_run_json(tmp_path / "run")["budget_estimates"]["step_cap"] == 80
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda"])

@@ -19,6 +19,10 @@ class TrainConfig:
     time_curriculum: float = 0.5      # fraction of the deformation stage over which frames are admitted in time order
     batch_views: int = 1              # views rendered per step
     expected_seconds: float = 90.0    # rough wall-clock on the demo capture, 2-core CPU
+    # a --seconds budget plans at most this many x iterations steps (0: no cap) and ends early when the cap binds:
+    # more steps overfit the two views (fast preset, 120 s budgets on a 2-core CPU ran 2700-7300 steps; at 2000
+    # fixed steps eval PSNR was higher on 5 of 6 scene x model pairs, demo RGB-only 22.95 -> 24.25 dB; README, "eq16")
+    budget_step_cap: float = 2.0
 
     # ---- initialisation -------------------------------------------------------------
     init: str = "auto"                # auto | ply | stereo (SGBM, fused) | planesweep | random

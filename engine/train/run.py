@@ -30,6 +30,7 @@ from .budget import (
     reestimate_at,
     reestimate_deform_steps,
     reestimate_steps,
+    step_cap,
     steps_for_budget,
     warm_up_runtime,
 )
@@ -117,7 +118,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             elapsed = time.perf_counter() - t_start
             trainer.total_steps = steps_for_budget(seconds, t_s, t_d, cfg, reserve_s=elapsed + 1.0)
             budget_estimates = {"probe": {"static_step_s": round(t_s, 5), "deform_step_s": round(t_d, 5),
-                                          "total_steps": trainer.total_steps}, "measured": None}
+                                          "total_steps": trainer.total_steps}, "measured": None,
+                                "step_cap": step_cap(cfg)}  # a run it binds ends before its budget
     total = trainer.total_steps
     budget_end = (t_start + float(seconds)) if seconds is not None else None
     skip_notes = {}
@@ -217,8 +219,9 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                     if step > deform_mark[0]:
                         deform_rate = (now - deform_mark[1]) / (step - deform_mark[0])
                     left = budget_end - now - END_RESERVE_S
-                    if deform_rate is not None and left >= 2 * deform_rate:
-                        rec = dict(reestimate_deform_steps(trainer, step, deform_rate, left), fill=True)
+                    rec = None if deform_rate is None or left < 2 * deform_rate else \
+                        dict(reestimate_deform_steps(trainer, step, deform_rate, left), fill=True)
+                    if rec is not None and rec["total_steps"] > step:  # not when the step cap has bound
                         budget_estimates["deform"].append(rec)
                         trainer.schedule.replan(step, rec["total_steps"])
                         total = trainer.total_steps
