@@ -29,6 +29,11 @@ Gaussian departs between frames from the cubic Hermite curve (Catmull-Rom tangen
 its own ``rho`` at the RGB instants -- the in-between along-ray motion that the along-ray
 prior (``lambda_along_ray``, engine/train/along_ray.py) penalises -- and ``gt_wobble_mm``,
 the same for the true positions (what that curve cannot follow of the real motion).
+
+And ``phase_mm``: the mean |error| (3D, same weights) by place in the RGB interval, first at the
+RGB instants that open an interval, then at each of the ``--per-interval`` instants: whether an
+object's error is there at the instants already or grows between them (``--per-interval 3``:
+0, 1/4, 1/2, 3/4 of the interval).
 """
 from __future__ import annotations
 
@@ -127,11 +132,13 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
     x0 = positions_at(t0)
     owner, names = assign(x0, truth, t0, radius)
     owner[opacities <= 0.1] = -1
-    instants = [a + (b - a) * (i + 1) / (per_interval + 1) for a, b in zip(rgb_times, rgb_times[1:])
-                for i in range(per_interval)]
+    instants = [(a + (b - a) * (i + 1) / (per_interval + 1), i + 1) for a, b in zip(rgb_times, rgb_times[1:])
+                for i in range(per_interval)]  # (time, place in the interval: 1 .. per_interval)
     cam_c = np.asarray(spike_view.c2w, np.float64)[:3, 3]
     out = {}
     acc = {k: {"ray": [], "plane": [], "px": [], "w": [], "wob": [], "gt_wob": []} for k in range(len(names))}
+    # |error| by place in the interval: [0] at the RGB instants that open an interval, [i] at its i-th instant
+    by_phase = {k: [[0.0, 0.0] for _ in range(per_interval + 1)] for k in range(len(names))}
     M0s = {name: object_pose(truth, name, t0) for name in names}
 
     def truth_at(name, sel, t):
@@ -140,9 +147,17 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
         return p @ Mt[:3, :3].T + Mt[:3, 3]
 
     rho = lambda v: np.linalg.norm(v - cam_c, axis=1)  # noqa: E731
-    rho_rgb = [rho(positions_at(T)) for T in rgb_times]
+    x_rgb = [positions_at(T) for T in rgb_times]
+    rho_rgb = [rho(x) for x in x_rgb]
     rho_gt_rgb = {name: [rho(truth_at(name, owner == k, T)) for T in rgb_times] for k, name in enumerate(names)}
-    for t in instants:
+    for t, x in zip(rgb_times[:-1], x_rgb):
+        for k, name in enumerate(names):
+            sel = owner == k
+            if sel.any():
+                e = np.linalg.norm(x[sel] - truth_at(name, sel, t), axis=1)
+                by_phase[k][0][0] += float((e * opacities[sel]).sum())
+                by_phase[k][0][1] += float(opacities[sel].sum())
+    for t, phase in instants:
         x = positions_at(t)
         for k, name in enumerate(names):
             sel = owner == k
@@ -150,6 +165,9 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
                 continue
             gt = truth_at(name, sel, t)
             e = x[sel] - gt
+            ph = by_phase[k][phase]
+            ph[0] += float((np.linalg.norm(e, axis=1) * opacities[sel]).sum())
+            ph[1] += float(opacities[sel].sum())
             ray = gt - cam_c
             ray /= np.linalg.norm(ray, axis=1, keepdims=True)
             along = (e * ray).sum(1)
@@ -176,6 +194,7 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
                      "plane_mm_median": 1000 * med(a["plane"]), "plane_px_median": med(a["px"]),
                      "wobble_mm": 1000 * mean(a["wob"]), "wobble_mm_median": 1000 * med(a["wob"]),
                      "gt_wobble_mm": 1000 * mean(a["gt_wob"]),
+                     "phase_mm": [1000 * num / max(den, 1e-12) for num, den in by_phase[k]],
                      "gaussians": int((owner == k).sum()), "instants": len(instants)}
     return out
 
@@ -240,6 +259,8 @@ def main(argv=None) -> int:
                       f"{v['wobble_mm']:.1f} mm (median {v['wobble_mm_median']:.1f}; truth {v['gt_wobble_mm']:.1f}); "
                       f"{v['gaussians']} Gaussians, "
                       f"{v['instants']} instants")
+                phases = ", ".join(f"{i / (args.per_interval + 1):.2f}: {mm:.1f}" for i, mm in enumerate(v["phase_mm"]))
+                print(f"{run} {name}: |error| by place in the interval (mm) {phases}")
             else:
                 print(f"{run} {name}: no Gaussians on the object")
     if args.json:

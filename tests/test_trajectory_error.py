@@ -50,6 +50,16 @@ def test_errors_split_along_the_ray_and_across(tmp_path):
 
     r = te.trajectory_errors(along_y, opac, truth, rgb, view, per_interval=3)["ball"]
     assert 18.0 < r["ray_mm"] < 20.5 and r["plane_mm"] < 3.0
+    # by place in the interval: exact at the RGB instants, 2 cm off at each of the three between them
+    assert len(r["phase_mm"]) == 4 and r["phase_mm"][0] < 1e-6
+    assert all(abs(mm - 20.0) < 1e-6 for mm in r["phase_mm"][1:])
+
+    def growing(t):  # off along x by 4 cm x the place in the interval (0 at the RGB instants)
+        u = (t % 0.1) / 0.1
+        return exact(t) + np.array([0.04 * u, 0.0, 0.0])
+
+    r = te.trajectory_errors(growing, opac, truth, rgb, view, per_interval=3)["ball"]
+    assert np.allclose(r["phase_mm"], [0.0, 10.0, 20.0, 30.0], atol=1e-3)
 
     def across_z(t):  # 2 cm off along z: in the image plane, ~0.28 px at 5 m with f = 70
         return exact(t) + (0.0 if t in rgb else 1.0) * np.array([0.0, 0.0, 0.02])
