@@ -159,3 +159,32 @@ def test_step_before_variant_switches_the_old_paths_and_restores_them():
     with bench_step.variant("step-before"):
         assert state() == (False, False, False, False)
     assert state() == now
+
+
+def test_rounds_alternate_the_runs_and_report_each_rounds_ratios(capture, monkeypatch):
+    """``--rounds 2``: RGB, guided, RGB, guided; the tables cover every round's steps and each
+    round's ratios are printed with their median."""
+    order = []
+    real = bench_step._profile_run
+
+    def spy(cap, steps, preset, overrides, rgb_only, prof, device="cpu"):
+        order.append(rgb_only)
+        return real(cap, steps, preset, overrides, rgb_only, prof, device)
+
+    monkeypatch.setattr(bench_step, "_profile_run", spy)
+    over = {"init": "ply", "static_fraction": 0.25}
+    profs, _ = bench_step.compare_runs(capture, 8, overrides=over, spike=True, rounds=2)
+    assert order == [True, False, True, False]
+    prof = profs["current"]
+    assert len(prof.rounds) == 2
+    for label in ("rgb_deform", "guided_deform"):
+        parts = [p.table(label)["steps"] for p in prof.rounds]
+        assert parts[0] > 0 and prof.table(label)["steps"] == sum(parts)
+        # the merged step time is the step-weighted mean of the rounds'
+        mean = sum(p.table(label)["step_ms"] * p.table(label)["steps"] for p in prof.rounds) / sum(parts)
+        assert prof.table(label)["step_ms"] == pytest.approx(mean, rel=1e-9)
+    text = bench_step.round_ratios(prof)
+    per = [bench_step.ratios(p)["guided_step_over_rgb_step"] for p in prof.rounds]
+    assert f"guided / RGB step by round: {per[0]:.2f}x, {per[1]:.2f}x; median {np.median(per):.2f}x" in text
+    with pytest.raises(ValueError, match="rounds"):
+        bench_step.compare_runs(capture, 8, overrides=over, spike=False, rounds=0)

@@ -107,6 +107,7 @@ class StepProfiler:
         self._patches: list[tuple] = []
         self._field_bwd_start = None
         self.fine_stats: dict | None = None  # EncodedWindows counters of the guided run
+        self.rounds: list = []  # merged(): the per-round profilers this one sums
 
     def _acc(self, label):
         if label not in self.by_label:
@@ -272,6 +273,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=60, help="schedule length of each profiled run (default 60)")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="repeat the RGB and guided runs this many times, alternating, and print each round's "
+                             "ratios and their median (tables: every round's steps)")
     parser.add_argument("--variants", default="current",
                         help="comma-separated code paths profiled in this one process, runs interleaved: "
                              + ", ".join(f"{k} ({v['doc']})" for k, v in VARIANTS.items()) + " (default current)")
@@ -468,16 +472,38 @@ def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only:
     return tr.model.gaussians.num_gaussians
 
 
+def merged(profs: list["StepProfiler"]) -> "StepProfiler":
+    """One profiler whose tables are over every step of ``profs`` (each label's times and
+    step counts summed); ``rounds`` keeps the parts, in order."""
+    out = StepProfiler()
+    for p in profs:
+        for label, acc in p.by_label.items():
+            dst = out._acc(label)
+            for c in CATEGORIES:
+                dst["totals"][c] += acc["totals"][c]
+            dst["steps"] += acc["steps"]
+            dst["seconds"] += acc["seconds"]
+        out.fine_stats = p.fine_stats or out.fine_stats
+    out.rounds = list(profs)
+    return out
+
+
 def compare_runs(capture, steps: int, preset: str = "fast", overrides: dict | None = None,
-                 spike: bool = True, variants=("current",), device: str = "cpu") -> tuple[dict, dict]:
+                 spike: bool = True, variants=("current",), device: str = "cpu",
+                 rounds: int = 1) -> tuple[dict, dict]:
     """Profile an RGB-only run (and, with ``spike``, a guided run) of ``steps`` steps for
     each code path of ``variants`` (:data:`VARIANTS`), interleaved: RGB runs of every
-    variant, then guided runs. Returns ({variant: StepProfiler}, {variant: Gaussian counts})."""
+    variant, then guided runs; ``rounds`` times over (RGB, guided, RGB, guided, ...), so that
+    a ratio of the two runs can be read per round: on a shared VM the guided / RGB ratio of
+    one pair moved 1.64-1.90x between processes. Returns ({variant: StepProfiler over every
+    round, its ``rounds`` the per-round profilers}, {variant: Gaussian counts of the last round})."""
+    if rounds < 1:
+        raise ValueError("bench-step: rounds must be >= 1")
     cap = load_capture(capture) if not hasattr(capture, "frames") else capture
     global _SYNC_CUDA
     on_cpu = torch.device(device).type == "cpu"
     warm_up_runtime(device)
-    profs = {v: StepProfiler() for v in variants}
+    per_round = {v: [StepProfiler() for _ in range(int(rounds))] for v in variants}
     counts: dict = {v: {} for v in variants}
     threads = torch.get_num_threads()
     if on_cpu:
@@ -489,16 +515,18 @@ def compare_runs(capture, steps: int, preset: str = "fast", overrides: dict | No
             raise SystemExit("bench-step --device cuda: gsplat unusable: " + gsplat_backend.unavailable_reason())
     _SYNC_CUDA = torch.device(device).type == "cuda"
     try:
-        for rgb_only in ((True, False) if spike else (True,)):
-            for v in variants:
-                with variant(v):
-                    n = _profile_run(cap, steps, preset, {**(overrides or {}), **VARIANTS[v].get("overrides", {})},
-                                     rgb_only, profs[v], device)
-                counts[v]["rgb_deform" if rgb_only else "guided_deform"] = n
+        for r in range(int(rounds)):
+            for rgb_only in ((True, False) if spike else (True,)):
+                for v in variants:
+                    with variant(v):
+                        n = _profile_run(cap, steps, preset,
+                                         {**(overrides or {}), **VARIANTS[v].get("overrides", {})},
+                                         rgb_only, per_round[v][r], device)
+                    counts[v]["rgb_deform" if rgb_only else "guided_deform"] = n
     finally:
         torch.set_num_threads(threads)
         _SYNC_CUDA = False
-    return profs, counts
+    return {v: merged(per_round[v]) for v in variants}, counts
 
 
 def profile_runs(capture, steps: int, preset: str = "fast", overrides: dict | None = None,
@@ -516,6 +544,19 @@ def ratios(prof: "StepProfiler", clock: str = "wall") -> dict:
     if guided["steps"]:
         out["guided_step_over_rgb_step"] = guided["step_ms"] / rgb["step_ms"] if rgb["step_ms"] else float("nan")
     return out
+
+
+def round_ratios(prof: "StepProfiler", clock: str = "wall") -> str:
+    """The two ratios of each round of ``prof`` (:func:`merged`) and their medians."""
+    per = [ratios(p, clock) for p in prof.rounds]
+    lines = []
+    for key, name in (("rgb_step_over_raster", "RGB step / rasterizer"),
+                      ("guided_step_over_rgb_step", "guided / RGB step")):
+        vals = [r[key] for r in per if key in r]
+        if vals:
+            lines.append(f"{name} by round: " + ", ".join(f"{v:.2f}x" for v in vals)
+                         + f"; median {float(np.median(vals)):.2f}x")
+    return "\n".join(lines)
 
 
 def markdown(prof: "StepProfiler", clock: str = "wall") -> str:
@@ -538,7 +579,7 @@ def main(args) -> int:
     load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     t0 = time.perf_counter()
     profs, counts = compare_runs(args.capture, args.steps, args.preset, parse_overrides(args.set),
-                                 variants=variants, device=args.device)
+                                 variants=variants, device=args.device, rounds=args.rounds)
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     for v in variants:
         prof = profs[v]
@@ -550,6 +591,8 @@ def main(args) -> int:
             print(f"RGB deformation step / rasterizer fwd+bwd: {r['rgb_step_over_raster']:.2f}x (target <= 1.6x)")
             if "guided_step_over_rgb_step" in r:
                 print(f"guided step / RGB step: {r['guided_step_over_rgb_step']:.2f}x (target <= 1.6x)")
+            if len(prof.rounds) > 1:
+                print(round_ratios(prof, clock))
             print()
         print(f"Gaussians at the end ({v}): {counts[v]}")
         if getattr(prof, "fine_stats", None):
