@@ -246,6 +246,11 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     assert calls[-1]["overrides"] == {"early_stop": True} and calls[-1]["seconds"] == s.seconds
     # its tooltip says what the engine does: held-back train frames, never the eval frames
     assert "never the eval frames" in s.bl_rna.properties["early_stop"].description
+    # the time budget's tooltip says what the step cap does, per preset (engine.train.budget.step_cap)
+    from engine.train.presets import get_preset
+    budget_tip = s.bl_rna.properties["seconds"].description
+    assert "twice the preset's step" in budget_tip and get_preset("balanced").budget_step_cap == 2.0
+    assert "Quality at most its own" in budget_tip and get_preset("quality").budget_step_cap == 1.0
     # "Motion": the engine's default (first item) passes nothing; another choice is passed
     from engine.train.presets import TrainConfig
     assert s.motion == TrainConfig().motion
