@@ -29,7 +29,9 @@ time over all its threads (steadier on a shared machine; the load average is pri
 
 ``--variants reference,current`` profiles the code paths of :data:`VARIANTS` in one
 process, runs interleaved (RGB runs of each, then guided runs), and prints each one's
-tables and the step speed-ups: before / after a change under the same load.
+tables and the step speed-ups: before / after a change under the same load. ``--rounds N``
+repeats the RGB and guided runs N times, alternating, and prints each round's ratios and their
+median (:func:`round_ratios`): one pair's ratio moves with the machine between processes.
 """
 from __future__ import annotations
 
