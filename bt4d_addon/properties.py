@@ -67,7 +67,8 @@ class BT4D_SceneSettings(PropertyGroup):
     seconds: FloatProperty(
         name="Time Budget", default=600.0, min=5.0, soft_max=7200.0, unit="TIME_ABSOLUTE",
         description="Wall-clock training budget in seconds. A run plans at most twice the preset's step "
-                    "count, Quality at most its own (more steps overfit the two views), and may finish early")
+                    "count (Balanced 1.5 times, Quality its own: more steps overfit the two views) and may "
+                    "finish early")
     output_dir: StringProperty(
         name="Output", subtype="DIR_PATH", default="//bt4d_runs/",
         description="Where runs (checkpoints, exports, renders) are written")

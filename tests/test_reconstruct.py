@@ -249,8 +249,9 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     # the time budget's tooltip says what the step cap does, per preset (engine.train.budget.step_cap)
     from engine.train.presets import get_preset
     budget_tip = s.bl_rna.properties["seconds"].description
-    assert "twice the preset's step" in budget_tip and get_preset("balanced").budget_step_cap == 2.0
-    assert "Quality at most its own" in budget_tip and get_preset("quality").budget_step_cap == 1.0
+    assert "twice the preset's step" in budget_tip and get_preset("fast").budget_step_cap == 2.0
+    assert "Balanced 1.5 times" in budget_tip and get_preset("balanced").budget_step_cap == 1.5
+    assert "Quality its own" in budget_tip and get_preset("quality").budget_step_cap == 1.0
     # "Motion": the engine's default (first item) passes nothing; another choice is passed
     from engine.train.presets import TrainConfig
     assert s.motion == TrainConfig().motion
