@@ -149,12 +149,13 @@ def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_time
     rho = lambda v: np.linalg.norm(v - cam_c, axis=1)  # noqa: E731
     x_rgb = [positions_at(T) for T in rgb_times]
     rho_rgb = [rho(x) for x in x_rgb]
-    rho_gt_rgb = {name: [rho(truth_at(name, owner == k, T)) for T in rgb_times] for k, name in enumerate(names)}
-    for t, x in zip(rgb_times[:-1], x_rgb):
+    gt_rgb = {name: [truth_at(name, owner == k, T) for T in rgb_times] for k, name in enumerate(names)}
+    rho_gt_rgb = {name: [rho(gt) for gt in gts] for name, gts in gt_rgb.items()}
+    for i, x in enumerate(x_rgb[:-1]):
         for k, name in enumerate(names):
             sel = owner == k
             if sel.any():
-                e = np.linalg.norm(x[sel] - truth_at(name, sel, t), axis=1)
+                e = np.linalg.norm(x[sel] - gt_rgb[name][i], axis=1)
                 by_phase[k][0][0] += float((e * opacities[sel]).sum())
                 by_phase[k][0][1] += float(opacities[sel].sum())
     for t, phase in instants:
