@@ -19,7 +19,7 @@ PRESET_ITEMS = (
     ("balanced", "Balanced", "The default trade-off between time and quality"),
     ("quality", "Quality", "More iterations and Gaussians; best results, slowest"),
 )
-MOTION_ITEMS = (  # engine.train.presets.TrainConfig.motion; the first is the engine's default
+MOTION_ITEMS = (  # the engine setting motion.representation; the first is the engine's default
     ("trajectory", "Per-Gaussian Curves",
      "Every Gaussian follows its own cubic Bezier curve through the RGB instants (E-NeMF): "
      "fast objects stay sharp; the spike stream bends the curves between frames"),
@@ -29,7 +29,7 @@ MOTION_ITEMS = (  # engine.train.presets.TrainConfig.motion; the first is the en
     ("trajectory+hexplane", "Curves + Field",
      "Per-Gaussian curves with a HexPlane field as a residual on top (slowest)"),
 )
-CRACK_FILL_ITEMS = (  # engine.train.presets.TrainConfig.cover_grad; the first is the engine's default
+CRACK_FILL_ITEMS = (  # the engine setting losses.cover_grad; the first is the engine's default
     ("all", "Grow and Move",
      "Gaussians may grow, turn and move to cover cracks: best on most scenes (README)"),
     ("opacities+means", "Move Only",
@@ -79,19 +79,19 @@ class BT4D_SceneSettings(PropertyGroup):
     # -- advanced: motion representation and skipping what the scene does not need ----------
     motion: EnumProperty(
         name="Motion", items=MOTION_ITEMS, default=MOTION_ITEMS[0][0],
-        description="How the Gaussians move over time (engine TrainConfig.motion)")
+        description="How the Gaussians move over time")
     freeze_static: BoolProperty(
         name="Freeze Static Gaussians", default=False,
         description="Gaussians that do not move stop using the deformation field (CPOStream freezing): "
                     "faster deformation steps on scenes with a static background")
     close_cracks: BoolProperty(
         name="Close Cracks at New Views", default=True,
-        description="Keep what the cameras cover covered from viewpoints 10-20 degrees away (engine "
-                    "TrainConfig.lambda_cover); turn off for scenes that really show empty space through "
+        description="Keep what the cameras cover covered from viewpoints 10-20 degrees away; turn off for "
+                    "scenes that really show empty space through "
                     "small gaps (wires, foliage)")
     crack_fill: EnumProperty(
         name="Fill Cracks By", items=CRACK_FILL_ITEMS, default=CRACK_FILL_ITEMS[0][0],
-        description="What the crack term may change (engine TrainConfig.cover_grad)")
+        description="What closing the cracks may change in the Gaussians")
     early_stop: BoolProperty(
         name="Stop Early", default=False,
         description="Stop training when the PSNR on a few train frames held back from training stops "

@@ -78,17 +78,17 @@ def advanced_overrides(settings) -> dict:
     out = {}
     motion = getattr(settings, "motion", MOTION_ITEMS[0][0])
     if motion != MOTION_ITEMS[0][0]:
-        out["motion"] = str(motion)
+        out["motion.representation"] = str(motion)
     if getattr(settings, "freeze_static", False):
-        out["freeze_static"] = True
+        out["skip.freeze_static"] = True
     if getattr(settings, "early_stop", False):
-        out["early_stop"] = True
+        out["skip.early_stop"] = True
     if not getattr(settings, "close_cracks", True):
-        out["lambda_cover"] = 0.0  # on in the engine by default
+        out["losses.cover"] = 0.0  # on in the engine by default
     else:
         fill = getattr(settings, "crack_fill", CRACK_FILL_ITEMS[0][0])
         if fill != CRACK_FILL_ITEMS[0][0]:
-            out["cover_grad"] = str(fill)
+            out["losses.cover_grad"] = str(fill)
     return out
 
 
@@ -292,7 +292,7 @@ class BT4D_OT_reconstruct(Operator):
         overrides = advanced_overrides(s)
         if self.iterations > 0:
             seconds = None
-            overrides["iterations"] = int(self.iterations)
+            overrides["schedule.iterations"] = int(self.iterations)
         overrides = overrides or None
         job = worker.Job(worker.reconstruct_job, kind=KIND, capture_path=capture, run_dir=run_dir,
                          preset=s.preset, seconds=seconds if seconds and seconds > 0 else None,

@@ -80,12 +80,12 @@ def test_table_handles_missing_values():
 def test_equal_steps_sets_iterations_and_no_time_budget(tmp_path):
     calls = []
     train_fn, eval_fn = _fakes(calls)
-    rows = ablate.run_ablation("cap", tmp_path, None, ["rgb-only", "full", "full+ray"], steps=300,
+    rows = ablate.run_ablation("cap", tmp_path, None, ["rgb-only", "full", "full-pg"], steps=300,
                                overrides={"iterations": 50}, train_fn=train_fn, eval_fn=eval_fn, log=lambda s: None)
     assert [c["seconds"] for c in calls] == [None] * 3  # no wall-clock budget: the schedule is the steps
     assert [c["overrides"]["iterations"] for c in calls] == [300] * 3  # --steps wins over --set iterations
     assert all("budget_step_cap" not in c["overrides"] for c in calls)  # no budget: the cap is not touched
-    assert calls[2]["overrides"]["lambda_along_ray"] > 0 and "lambda_along_ray" not in calls[1]["overrides"]
+    assert calls[2]["overrides"]["fine_per_gaussian"] and "fine_per_gaussian" not in calls[1]["overrides"]
     assert all(r["steps"] == 100 for r in rows)  # what the run reports
     with pytest.raises(ValueError, match="exactly one"):
         ablate.run_ablation("cap", tmp_path, 10.0, ["full"], steps=10, train_fn=train_fn, eval_fn=eval_fn)

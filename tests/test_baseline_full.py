@@ -11,9 +11,9 @@ import torch
 
 from engine.io.capture import load_capture
 from engine.train.baselines import baseline_frames, with_baseline
+from engine.train.config import get_preset
 from engine.train.interpolation import flow_interpolate, interpolation_inconsistency, lk_flow
 from engine.train.losses import _dssim, _l1, frame_item_fields
-from engine.train.presets import get_preset
 
 
 @pytest.fixture(scope="module")

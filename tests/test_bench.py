@@ -182,10 +182,9 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
     res = bench.run_bench(capture, tmp_path / "b", presets=("fast",), variants=bench.VARIANTS, seconds=5,
                           eval_every_s=1, overrides={"max_gaussians": 500}, micro=False, progress=False,
                           train_fn=recording_train, flicker=False, log=None)
-    assert seen["fast-freeze"][0]["freeze_static"] is True and seen["fast-cull"][0]["cull_frustum"] is True
-    early = seen["fast-early_stop"][0]
-    assert early["early_stop"] is True and early["early_stop_proxy_frames"] == 4
-    assert not any(k in seen["fast-full"][0] for k in ("freeze_static", "early_stop", "cull_frustum"))
+    assert seen["fast-freeze"][0]["skip.freeze_static"] is True and seen["fast-cull"][0]["skip.cull_frustum"] is True
+    assert seen["fast-early_stop"][0]["skip.early_stop"] is True
+    assert not any(k.startswith("skip.") for k in seen["fast-full"][0])
     assert seen["fast-rgb_only"][1] is True and all(ov["max_gaussians"] == 500 for ov, _ in seen.values())
     by = {r.variant: r for r in res["results"]}
     assert by["cull"].extra["cull"]["pruned"] == 7 and by["freeze"].extra["freeze"]["woken"] == 2
@@ -195,14 +194,18 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
 
 
 @pytest.mark.slow
-def test_skip_variants_with_the_real_trainer(tmp_path):
+def test_skip_variants_with_the_real_trainer(tmp_path, monkeypatch):
     from engine.io.capture import load_capture
+    from engine.train import early_stop, freezing
 
+    monkeypatch.setattr(freezing, "START_FRACTION", 0.0)
+    monkeypatch.setattr(freezing, "CHECKS_PER_STAGE", 6)
+    monkeypatch.setattr(early_stop, "MIN_DEFORM_FRACTION", 0.0)
+    monkeypatch.setattr(early_stop, "MIN_DELTA_DB", 100.0)
     capture = load_capture(_tiny_capture(tmp_path / "cap", stereo=True))
     ov = {"iterations": 10, "init": "random", "init_random_points": 300, "static_fraction": 0.4,
-          "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 6, "freeze_k_checks": 1,
-          "freeze_motion_eps_px": 100.0, "early_stop_min_deform_fraction": 0.0, "early_stop_patience": 1,
-          "early_stop_min_delta": 100.0, "motion": "hexplane"}  # freezing skips the HexPlane field
+          "freeze_k_checks": 1, "freeze_motion_eps_px": 100.0, "early_stop_patience": 1,
+          "motion": "hexplane"}  # freezing skips the HexPlane field
     for variant in ("freeze", "early_stop", "cull"):
         r = bench.run_one(capture, tmp_path, "fast", variant, seconds=None, eval_every_s=100.0, overrides=ov,
                           flicker=False, evaluate_fn=lambda run, cap: {"psnr": 0.0})

@@ -85,13 +85,14 @@ def test_guided_before_variant_patches_the_old_code_paths_and_restores_them():
     from engine.train import interpolation, spike_guidance
 
     fl, cons = interpolation._flow_length, spike_guidance.flow_consistency
-    assert bench_step.VARIANTS["guided-before"]["overrides"]["fine_encoder_every"] == 0
     with bench_step.variant("guided-before"):
+        assert spike_guidance.FINE_ENCODER_EVERY == 0
         assert interpolation._flow_length is bench_step._norm_flow_length
         assert spike_guidance.flow_consistency(None, None) is None  # occlusion maps recomputed every time
         f = torch.randn(1, 2, 5, 6)
         old = interpolation._flow_length(f)
     assert (interpolation._flow_length, spike_guidance.flow_consistency) == (fl, cons)
+    assert spike_guidance.FINE_ENCODER_EVERY == 1
     assert torch.allclose(interpolation._flow_length(f), old, atol=1e-6)  # same values, other code path
 
 
@@ -110,7 +111,7 @@ def test_trajectory_step_variants_switch_the_old_paths_and_restore_them():
     assert (trajectory.EVALUATOR, fused_adam.ENABLED, scene_flow.DENSE_SEARCH) == now
 
 
-def test_guided_main_and_crop_variants_switch_the_old_paths_and_restore_them():
+def test_guided_main_variants_switch_the_old_paths_and_restore_them():
     from engine.train import spike_flow, spike_guidance
 
     now = (spike_guidance.BETWEEN_DEPTH, spike_flow.inner_only_positions)
@@ -122,29 +123,28 @@ def test_guided_main_and_crop_variants_switch_the_old_paths_and_restore_them():
         assert spike_flow.inner_only_positions is bench_step._inner_only_positions_gather
         assert spike_guidance.BETWEEN_DEPTH is False
     assert (spike_guidance.BETWEEN_DEPTH, spike_flow.inner_only_positions) == now
-    assert bench_step.VARIANTS["guided-main"]["overrides"] == {"spike_crop": False}
-    assert bench_step.VARIANTS["crop-on"]["overrides"] == {"spike_crop": True}
-    assert bench_step.VARIANTS["crop-off"]["overrides"] == {"spike_crop": False}
 
 
 def test_refresh_before_variant_is_the_old_refresh_periods():
     """``refresh-before`` trains with the guided step's caches refreshed as before (every 10
     steps); the defaults are the new periods (README, "The guided step's per-run work")."""
-    from engine.train.presets import get_preset
+    from engine.train import quiet_curves, spike_flow, spike_flow_cache
 
-    assert bench_step.VARIANTS["refresh-before"]["overrides"] == {"spike_flow_surface_every": 10,
-                                                                  "quiet_curves_refresh": 10}
-    cfg = get_preset("fast")
-    assert (cfg.spike_flow_surface_every, cfg.quiet_curves_refresh, cfg.spike_flow_upsample) == (30, 50, 2)
+    assert (spike_flow.SURFACE_EVERY, quiet_curves.REFRESH, spike_flow_cache.UPSAMPLE) == (30, 50, 2)
+    with bench_step.variant("refresh-before"):
+        assert (spike_flow.SURFACE_EVERY, quiet_curves.REFRESH) == (10, 10)
+    assert (spike_flow.SURFACE_EVERY, quiet_curves.REFRESH) == (30, 50)
 
 
 def test_flow_inline_variant_computes_the_flows_in_the_step():
     """``flow-inline`` is the flow term without its prefetch worker (the default has one, two
     intervals ahead: README, "The guided step's per-run work")."""
-    from engine.train.presets import get_preset
+    from engine.train import spike_flow_cache
 
-    assert bench_step.VARIANTS["flow-inline"]["overrides"] == {"spike_flow_prefetch": 0}
-    assert get_preset("fast").spike_flow_prefetch == 2
+    assert spike_flow_cache.PREFETCH == 2
+    with bench_step.variant("flow-inline"):
+        assert spike_flow_cache.PREFETCH == 0
+    assert spike_flow_cache.PREFETCH == 2
 
 
 def test_step_before_variant_switches_the_old_paths_and_restores_them():

@@ -11,7 +11,7 @@ from train_util import trajectory_model
 
 from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE, temporal_opacity
 from engine.train.births import ALWAYS_LOG_SCALE, birth_candidates, ensure_temporal_opacity
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 
 KNOTS = [0.0, 0.1, 0.2, 0.3]
 
@@ -84,7 +84,7 @@ def test_trainer_gives_birth_at_admitted_instants(demo_capture, tmp_path):
     over = {"iterations": 12, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
             "densify_from": 0.3, "densify_until": 0.9, "densify_every": 3, "densify_grad_threshold": 0.0,
             "time_curriculum": 0.5, "motion": "trajectory", "traj_carry": "velocity", "birth_error": 0.05}
-    assert get_preset("fast").birth_error > 0  # on by default
+    assert get_preset("fast").births.error > 0  # on by default
     summary = train(demo_capture, tmp_path / "run", preset="fast", overrides=over, rgb_only=True, resume=False)
     assert summary["status"] == "finished"
     rec = json.loads((tmp_path / "run" / "run.json").read_text())["births"]
@@ -140,7 +140,7 @@ def test_born_gaussians_get_the_backward_flow_lifted_by_depth_and_the_rest_their
 
 def test_birth_motion_is_off_by_default_and_checked():
     from engine.train.births import BIRTH_MOTIONS
-    assert get_preset("fast").birth_motion in BIRTH_MOTIONS
+    assert get_preset("fast").births.motion in BIRTH_MOTIONS
 
 
 @pytest.mark.slow  # ~1 min on a loaded 2-core machine (stereo and flow for every instant)
@@ -204,7 +204,7 @@ def test_unchanged_pixels_are_those_a_neighbouring_instant_repeats():
 
 
 @pytest.mark.parametrize("static_life", [0.0, 4.0])
-def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life):
+def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life, monkeypatch):
     """birth_static_lifespan: a born Gaussian whose pixel shows the same colour at a neighbouring
     RGB instant (a disoccluded static wall) gets that temporal std; one on a patch seen only at
     its instant (a moving object) keeps birth_lifespan. Off (0): every one gets birth_lifespan."""
@@ -223,7 +223,10 @@ def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life)
     images = {t: wall.copy() for t in knots}
     images[0.1][20:30, 50:60] = 0.9                       # moving: only at 0.1
     frames = [SimpleNamespace(camera="L", time=t) for t in knots]
-    cfg = get_preset("fast").replace(birth_error=0.15, birth_stride=2, birth_max=100000, birth_lifespan=0.5,
+    from engine.train import births
+
+    monkeypatch.setattr(births, "MAX_PER_FRAME", 100000)
+    cfg = get_preset("fast").replace(birth_error=0.15, birth_lifespan=0.5,
                                      birth_static_lifespan=static_life, birth_motion="none")
     depth, ok = np.full((H, W), 3.0, np.float32), np.ones((H, W), bool)
     trainer = SimpleNamespace(
@@ -256,7 +259,7 @@ def test_stereo_in_front_needs_an_opaque_render_and_the_ratio():
 
 
 @pytest.mark.parametrize("guard", [0.0, 0.8])
-def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard):
+def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard, monkeypatch):
     """birth_depth_guard: the model already has an opaque wall 5 m away (black); the frame shows
     it grey at every instant and stereo puts it at 3 m on the left half (a wrong match: dropped)
     and at 4.5 m on the right (kept); a patch seen only at its instant, at 3 m, is a moving
@@ -282,7 +285,10 @@ def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard):
     images = {t: np.full((H, W, 3), 0.6, np.float32) for t in knots}
     images[0.1][20:30, 10:20] = 0.95                      # moving: only at 0.1
     frames = [SimpleNamespace(camera="L", time=t) for t in knots]
-    cfg = get_preset("fast").replace(birth_error=0.15, birth_stride=2, birth_max=100000, birth_lifespan=0.5,
+    from engine.train import births
+
+    monkeypatch.setattr(births, "MAX_PER_FRAME", 100000)
+    cfg = get_preset("fast").replace(birth_error=0.15, birth_lifespan=0.5,
                                      birth_static_lifespan=0.0, birth_depth_guard=guard, birth_motion="none")
     depth, ok = np.full((H, W), 4.5, np.float32), np.ones((H, W), bool)
     depth[:, : W // 2] = 3.0

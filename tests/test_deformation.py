@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from engine.scene.deformation import PLANES, DeformationField, HexPlane, make_field, time_resolution_for
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 
 
 def _field(**kw):
@@ -160,5 +160,5 @@ def test_config_round_trip_and_make_field():
     assert time_resolution_for([0, 1 / 30, 2 / 30, 2 / 30, 0.1], 1.0) == 5
     cfg = get_preset("fast")
     f = make_field(cfg, [0, 0, 0], [1, 1, 1], (0, 0.2), [0, 0.1, 0.2])
-    assert f.grid.resolutions[0] == [cfg.hex_resolution] * 3 + [4]
+    assert f.grid.resolutions[0] == [cfg.hexplane.resolution] * 3 + [4]
     assert f.scale_head is None

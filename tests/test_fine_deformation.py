@@ -147,7 +147,7 @@ def _encode_with(memo, fine, w):
 
 
 def test_encoded_windows_share_one_pass_per_window_and_weights(stream):
-    """fine_encoder_every=1: two renders of one step in the same window share one encoder
+    """FINE_ENCODER_EVERY=1: two renders of one step in the same window share one encoder
     pass; values equal and gradients equal (float rounding) to two separate passes; a
     backward pass or an optimiser step ends the sharing."""
     from engine.scene.fine_deformation import EncodedWindows
@@ -211,7 +211,7 @@ def test_frozen_encoder_is_encoded_once_per_window(stream):
 
 
 def test_encoder_every_k_reuses_stale_tokens_and_trains_the_encoder_on_refresh_steps(stream):
-    """fine_encoder_every=k>1: a window's encoder runs (and gets gradients) once per k steps."""
+    """FINE_ENCODER_EVERY=k>1: a window's encoder runs (and gets gradients) once per k steps."""
     import copy
 
     from engine.scene.fine_deformation import EncodedWindows

@@ -99,11 +99,11 @@ def test_densification_keeps_working_with_the_fused_optimizer():
     import numpy as np
 
     from engine.scene.gaussians import GaussianModel
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
 
     rng = np.random.default_rng(0)
     g = GaussianModel(rng.normal(size=(50, 3)), rng.uniform(size=(50, 3)))
-    g.setup_optimizer(get_preset("fast"), 1.0)
+    g.setup_optimizer(get_preset("fast").gaussians, 1.0)
     assert isinstance(g.optimizer, FusedAdam)
     (g.means.sum() + g.sh_dc.sum()).backward()
     g.optimizer.step()

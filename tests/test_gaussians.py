@@ -6,13 +6,13 @@ import pytest
 import torch
 
 from engine.scene.gaussians import GaussianModel, eval_sh, knn_mean_distance, num_sh_bases, rgb_to_sh, sh_to_rgb
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 
 
 def _model(n=6, sh_degree=0, seed=0):
     rng = np.random.default_rng(seed)
     g = GaussianModel(rng.normal(size=(n, 3)), rng.uniform(size=(n, 3)), sh_degree=sh_degree, init_opacity=0.5)
-    g.setup_optimizer(get_preset("fast"), extent=2.0)
+    g.setup_optimizer(get_preset("fast").gaussians, extent=2.0)
     return g
 
 
@@ -127,7 +127,8 @@ def test_opacity_reset_and_means_lr_decay():
     cfg = get_preset("fast")
     lr0 = g.update_learning_rate(0.0)
     lr1 = g.update_learning_rate(1.0)
-    assert lr0 == pytest.approx(cfg.lr_means * 2.0) and lr1 == pytest.approx(cfg.lr_means_final * 2.0)
+    assert lr0 == pytest.approx(cfg.gaussians.lr_means * 2.0)
+    assert lr1 == pytest.approx(cfg.gaussians.lr_means_final * 2.0)
     assert lr1 < g.update_learning_rate(0.5) < lr0
 
 

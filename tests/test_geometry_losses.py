@@ -4,18 +4,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.train.geometry_losses import (
-    binocular_loss,
-    decay_visible_opacity,
-    edge_aware_smoothness,
-    partner_index,
-    step_background,
-    warp_into,
-)
+from engine.train import geometry_losses
+from engine.train.geometry_losses import decay_visible_opacity
 
 W, H = 64, 48
 K = Intrinsics(W, H, 60.0, 60.0, W / 2, H / 2)
@@ -35,52 +28,6 @@ def _plane_view(x):
     return t(np.repeat(img[..., None], 3, -1)), t(view.K), t(view.viewmat)
 
 
-def test_binocular_loss_is_zero_at_the_true_depth_and_trains_a_wrong_one():
-    ia, Ka, Va = _plane_view(-0.05)
-    ib, Kb, Vb = _plane_view(0.05)
-    alpha = torch.ones(H, W)
-    good = binocular_loss(torch.full((H, W), 2.0), alpha, ia, Ka, Va, ib, Kb, Vb)
-    depth = torch.full((H, W), 2.4, requires_grad=True)
-    bad = binocular_loss(depth, alpha, ia, Ka, Va, ib, Kb, Vb)
-    assert float(good) < 0.01 < float(bad.detach())
-    bad.backward()
-    assert depth.grad is not None and depth.grad.abs().sum() > 0
-    # a few gradient steps move a wrong depth towards the truth
-    d = torch.full((H, W), 2.15, requires_grad=True)
-    opt = torch.optim.Adam([d], lr=0.02)
-    for _ in range(25):
-        opt.zero_grad()
-        binocular_loss(d, alpha, ia, Ka, Va, ib, Kb, Vb).backward()
-        opt.step()
-    assert abs(float(d.detach().median()) - 2.0) < 0.07
-    # uncovered pixels do not count
-    assert binocular_loss(torch.full((H, W), 2.0), torch.zeros(H, W), ia, Ka, Va, ib, Kb, Vb) is None
-
-
-def test_warp_marks_pixels_that_leave_the_other_image():
-    ia, Ka, Va = _plane_view(-0.5)
-    ib, Kb, Vb = _plane_view(0.5)
-    _, valid = warp_into(torch.full((H, W), 2.0), Ka, Va, ib, Kb, Vb)
-    # b is 1 m to the right: a's right part is seen by b, its left 30 px fall off b's image
-    assert not valid[:, :25].any() and valid[:, 40:].all()
-
-
-def test_edge_aware_smoothness():
-    flat = torch.full((H, W, 3), 0.5)
-    edge = flat.clone()
-    edge[:, W // 2:] = 1.0
-    alpha = torch.ones(H, W)
-    assert float(edge_aware_smoothness(torch.full((H, W), 3.0), alpha, flat)) == pytest.approx(0.0, abs=1e-7)
-    step = torch.full((H, W), 3.0)
-    step[:, W // 2:] = 4.0
-    step.requires_grad_(True)
-    on_flat = edge_aware_smoothness(step, alpha, flat)
-    on_edge = edge_aware_smoothness(step, alpha, edge)
-    assert float(on_flat.detach()) > 5 * float(on_edge.detach()) > 0
-    on_flat.backward()
-    assert step.grad.abs().sum() > 0
-
-
 def test_opacity_decay_only_touches_visible_gaussians():
     logits = torch.zeros(5)
     decay_visible_opacity(logits, torch.tensor([True, False, True, False, False]), 0.9)
@@ -91,43 +38,41 @@ def test_opacity_decay_only_touches_visible_gaussians():
 def test_opacity_decay_acts_in_its_window_of_the_schedule():
     from types import SimpleNamespace
 
+    from engine.train.config import get_preset
     from engine.train.geometry_losses import geometry_post_step_hooks
-    from engine.train.presets import get_preset
     from engine.train.schedule import Schedule
 
-    cfg = get_preset("fast", {"opacity_decay": 0.9, "opacity_decay_from": 0.5, "opacity_decay_until": 0.8,
-                              "iterations": 10, "init_backdrop": 0.0})
+    cfg = get_preset("fast", {"opacity_decay": 0.9, "opacity_decay_until": 0.5, "iterations": 10,
+                              "init_backdrop": 0.0})
     (hook,) = geometry_post_step_hooks(cfg)
     logits = torch.zeros(4)
     tr = SimpleNamespace(cfg=cfg, schedule=Schedule.plan(10),
                          model=SimpleNamespace(gaussians=SimpleNamespace(opacity_logits=logits, num_gaussians=4)))
     seen = {"radii": torch.ones(1, 4, dtype=torch.int32)}
     hook(tr, 4, {}, seen)
-    assert torch.equal(logits, torch.zeros(4))  # step 4 of 10: before the start
-    hook(tr, 5, {}, seen)
-    assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
-    hook(tr, 8, {}, seen)  # step 8 of 10: past the end, opacities are the photometric loss's again
+    assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))  # step 4 of 10: inside [0, 5)
+    hook(tr, 5, {}, seen)  # step 5 of 10: past the end, opacities are the photometric loss's again
     assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
     # a budget run re-planned to 20 real steps at step 2: the window is on the schedule's clock
-    # (virtual step 2 + (s - 2) * 8 / 18), not on cfg.iterations: real step 8 is virtual 4.7
+    # (virtual step 2 + (s - 2) * 8 / 18), not on cfg.schedule.iterations: real step 8 is virtual 4.7
     tr.schedule.replan(2, 20)
     logits.zero_()
     hook(tr, 8, {}, seen)
-    assert torch.equal(logits, torch.zeros(4))
-    hook(tr, 14, {}, seen)  # virtual 7.3: inside [5, 8)
+    assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
+    hook(tr, 14, {}, seen)  # virtual 7.3: past the end
     assert torch.allclose(torch.sigmoid(logits), torch.full((4,), 0.45))
 
 
 def test_opacity_decay_ends_with_densification_unless_told():
+    from engine.train.config import get_preset, opacity_decay_window
     from engine.train.geometry_losses import geometry_post_step_hooks
-    from engine.train.presets import get_preset, opacity_decay_window
 
-    assert get_preset("fast").opacity_decay_until is None
-    assert opacity_decay_window(get_preset("fast")) == (0.0, get_preset("fast").densify_until)
+    assert get_preset("fast").losses.opacity_decay_until is None
+    assert opacity_decay_window(get_preset("fast")) == (0.0, get_preset("fast").densify.stop)
     assert opacity_decay_window(get_preset("fast", {"densify_until": 0.5})) == (0.0, 0.5)  # follows it
     assert opacity_decay_window(get_preset("fast", {"densify_until": 0.5, "opacity_decay_until": 0.9})) == (0.0, 0.9)
     # a --set from the command line arrives as a string and becomes a float
-    assert get_preset("fast", {"opacity_decay_until": "1"}).opacity_decay_until == 1.0
+    assert get_preset("fast", {"opacity_decay_until": "1"}).losses.opacity_decay_until == 1.0
     from types import SimpleNamespace
 
     from engine.train.schedule import Schedule
@@ -142,37 +87,26 @@ def test_opacity_decay_ends_with_densification_unless_told():
         assert bool((logits != 0).all()) == decayed_at_6
 
 
-def test_background_and_partners():
-    from engine.train.presets import get_preset
-
-    assert step_background(get_preset("fast"), 3, 0, "cpu") is None
-    cfg = get_preset("fast", {"random_background": True})
-    a, b = step_background(cfg, 3, 0, "cpu"), step_background(cfg, 4, 0, "cpu")
-    assert a.shape == (3,) and torch.equal(a, step_background(cfg, 3, 0, "cpu")) and not torch.equal(a, b)
-    items = [{"time": 0.0, "camera": "rgb0"}, {"time": 0.0, "camera": "rgb1"}, {"time": 0.1, "camera": "rgb0"}]
-    assert partner_index(items) == {0: 1, 1: 0}
-
-
-def test_every_switch_takes_part_in_a_run(tmp_path):
+def test_every_switch_takes_part_in_a_run(tmp_path, monkeypatch):
     from engine.io.capture import load_capture
     from engine.train import train
+    from engine.train.config import get_preset
     from engine.train.losses import default_loss_terms
-    from engine.train.presets import get_preset
     from engine.train.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
-    on = {"lambda_binocular": 0.5, "lambda_depth_smooth": 0.1, "opacity_decay": 0.99, "random_background": True,
-          "lambda_depth": 0.1, "lambda_cover": 0.5, "cover_every": 1, "init": "stereo", "init_backdrop": 0.2,
-          "backdrop_opacity": 0.0}  # the one post-step hook below is opacity decay
+    monkeypatch.setattr(geometry_losses, "COVER_EVERY", 1)
+    monkeypatch.setattr(geometry_losses, "BACKDROP_OPACITY", 0.0)  # the one post-step hook below is opacity decay
+    on = {"opacity_decay": 0.99, "lambda_depth": 0.1, "lambda_cover": 0.5, "init": "stereo", "init_backdrop": 0.2}
     names = [t.name for t in default_loss_terms(get_preset("fast", on))]
-    assert {"binocular", "depth_smooth", "stereo_depth", "cover"} <= set(names)
+    assert {"stereo_depth", "cover"} <= set(names)
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
     tr = Trainer(cap, get_preset("fast", {**on, "iterations": 4}), device="cpu", rgb_only=True)
     tr.init_model()
     assert tr.init_info["method"] == "stereo" and tr.init_info["backdrop"] > 0
     assert any("stereo_depth" in it for it in tr.items)
     out = tr.step(0)
-    assert {"binocular", "depth_smooth", "stereo_depth", "cover"} <= set(out["losses"])
+    assert {"stereo_depth", "cover"} <= set(out["losses"])
     assert len(tr.post_step_hooks) == 1  # opacity decay, applied to what the step's view saw
     g = tr.model.gaussians
     n = g.num_gaussians
@@ -187,7 +121,7 @@ def test_every_switch_takes_part_in_a_run(tmp_path):
     from engine.io.checkpoint import read_run_json
 
     info = read_run_json(tmp_path / "run")
-    assert info["config"]["lambda_binocular"] == 0.5 and info["init"]["backdrop"] > 0
+    assert info["config"]["losses"]["cover"] == 0.5 and info["init"]["backdrop"] > 0
 
 
 def test_orbit_view_turns_about_the_point_the_view_looks_at():
@@ -262,11 +196,11 @@ def test_cover_kernel_follows_the_render_resolution(tmp_path, monkeypatch):
     render's own size to it."""
     from engine.io.capture import load_capture
     from engine.train import geometry_losses as gl
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
-    frac = get_preset("fast").cover_kernel_frac
+    frac = gl.COVER_KERNEL_FRAC
     assert gl.cover_kernel_px(frac, 60, 80) == 9 and gl.cover_kernel_px(frac, 72, 96) == 9  # the test scenes
     assert gl.cover_kernel_px(frac, 360, 540) == 45  # a 1080x720 capture
     assert gl.cover_kernel_px(frac, 120, 160) == 15
@@ -276,9 +210,11 @@ def test_cover_kernel_follows_the_render_resolution(tmp_path, monkeypatch):
     monkeypatch.setattr(gl, "cover_loss", lambda alpha, kernel, eligible=None: (
         seen.append((tuple(alpha.shape), kernel)), real(alpha, kernel, eligible))[1])
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=96, height=72, n_rgb=2, eval_fps=30.0))
-    for frac, want in ((0.125, 5), (0.3, 11)):  # cover_scale 0.5: 48x36 renders
+    monkeypatch.setattr(gl, "COVER_EVERY", 1)
+    for frac, want in ((0.125, 5), (0.3, 11)):  # COVER_SCALE 0.5: 48x36 renders
         seen.clear()
-        cfg = get_preset("fast", {"iterations": 4, "cover_every": 1, "cover_kernel_frac": frac})
+        monkeypatch.setattr(gl, "COVER_KERNEL_FRAC", frac)
+        cfg = get_preset("fast", {"iterations": 4})
         tr = Trainer(cap, cfg, device="cpu", seed=0, rgb_only=True)
         tr.init_model()
         for s in range(2):
@@ -286,20 +222,22 @@ def test_cover_kernel_follows_the_render_resolution(tmp_path, monkeypatch):
         assert seen and all(sh == (36, 48) and k == want for sh, k in seen), seen
 
 
-def test_cover_term_raises_alpha_at_a_new_view(tmp_path):
+def test_cover_term_raises_alpha_at_a_new_view(tmp_path, monkeypatch):
     """A short run with the cover term leaves fewer cracks at a view 20 deg off than without."""
     import math
 
     from engine.io.capture import load_capture
+    from engine.train.config import get_preset
     from engine.train.geometry_losses import crack_mask, orbit_view
-    from engine.train.presets import get_preset
     from engine.train.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
     holes = {}
+    monkeypatch.setattr(geometry_losses, "COVER_EVERY", 1)
+    monkeypatch.setattr(geometry_losses, "COVER_SCALE", 1.0)
     for lam in (0.0, 4.0):
-        cfg = get_preset("fast", {"iterations": 40, "lambda_cover": lam, "cover_every": 1, "cover_scale": 1.0,
+        cfg = get_preset("fast", {"iterations": 40, "lambda_cover": lam,
                                   "densify_until": 0.0, "opacity_decay": 1.0})
         tr = Trainer(cap, cfg, device="cpu", seed=0, rgb_only=True)
         tr.init_model()
@@ -339,7 +277,7 @@ def test_seen_from_marks_what_the_source_view_sees():
 
 def test_render_grad_rows_limits_the_gradient_to_those_gaussians(tmp_path):
     from engine.io.capture import load_capture
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
@@ -360,7 +298,7 @@ def test_render_grad_attrs_limits_the_gradient_to_those_attributes(tmp_path):
     ``cover_grad``, e.g. positions and opacities, not the shapes); "size": the scales' common
     factor only."""
     from engine.io.capture import load_capture
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
@@ -393,7 +331,7 @@ def test_cover_grad_reaches_the_term_render(tmp_path, monkeypatch):
     only positions and opacities with ``opacities+means`` (README "What the term may change")."""
     from engine.io.capture import load_capture
     from engine.scene.model import Model4D
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
@@ -409,7 +347,8 @@ def test_cover_grad_reaches_the_term_render(tmp_path, monkeypatch):
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
     for over, want in (({}, None), ({"cover_grad": "opacities+means"}, ("opacities", "means"))):
         seen.clear()
-        tr = Trainer(cap, get_preset("fast", {"iterations": 4, "cover_every": 1, **over}), device="cpu", seed=0,
+        monkeypatch.setattr(geometry_losses, "COVER_EVERY", 1)
+        tr = Trainer(cap, get_preset("fast", {"iterations": 4, **over}), device="cpu", seed=0,
                      rgb_only=True)
         tr.init_model()
         tr.step(0)

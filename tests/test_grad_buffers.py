@@ -125,7 +125,7 @@ def test_training_with_reused_buffers_is_bit_for_bit_the_fresh_path(demo_capture
     import hashlib
 
     from engine.io.capture import load_capture
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.spike_flow import close_flow_worker
     from engine.train.trainer import Trainer
 

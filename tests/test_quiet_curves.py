@@ -7,8 +7,8 @@ import torch
 
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS
 from engine.spike.change import SpikeChange
-from engine.train.presets import get_preset
-from engine.train.quiet_curves import inner_keep, junction_groups, quiet_segments, tie_junctions, zero_inner
+from engine.train.config import get_preset
+from engine.train.quiet_curves import inner_keep, quiet_segments, zero_inner
 
 W, H = 16, 8  # spike view (px); 4 x 2 change blocks of 4 px
 
@@ -100,46 +100,6 @@ def test_zero_quiet_columns_kernel_equals_the_mask_multiply(dtype, monkeypatch):
         assert torch.equal(small, want) and (set(keeps) == {4}) == (cols is None)
 
 
-def test_tie_junctions_holds_a_run_of_quiet_segments_at_its_mean_and_nothing_else():
-    quiet = torch.tensor([[True, True, False], [False, False, False], [False, True, True]])
-    assert junction_groups(quiet).view(3, 4).tolist() == [[0, 0, 0, 1], [4, 5, 6, 7], [8, 9, 9, 9]]
-    p = torch.randn(3, 10, 3)  # F = 4 knots: junctions at columns 0, 3, 6, 9
-    before = p.clone()
-    tie_junctions(p, junction_groups(quiet))
-    j, j0 = p[:, 0::3], before[:, 0::3]
-    assert torch.allclose(j[0, :3], j0[0, :3].mean(0).expand(3, 3)) and torch.equal(j[0, 3], j0[0, 3])
-    assert torch.equal(j[1], j0[1])  # nothing quiet: untouched
-    assert torch.equal(j[2, 0], j0[2, 0]) and torch.allclose(j[2, 1:], j0[2, 1:].mean(0).expand(3, 3))
-    inner = torch.ones(10, dtype=torch.bool)
-    inner[0::3] = False
-    assert torch.equal(p[:, inner], before[:, inner])  # inner control points are zero_inner's business
-
-
-@pytest.mark.slow
-def test_trainer_ties_the_junctions_of_quiet_segments(demo_capture):
-    """quiet_junctions: after real guided steps on the demo capture, each segment the hook calls
-    quiet has equal junctions at both ends (positions and rotations); segments over a change
-    keep theirs apart. Without the switch the quiet segments' junctions differ (checked)."""
-    from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
-
-    gaps = {}
-    for on in (True, False):
-        tr = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "quiet_junctions": on}), device="cpu")
-        tr.init_model()
-        for step in range(_TINY["iterations"]):
-            tr.step(step)
-        used = tr.quiet_curves._mask[2]
-        assert 0.05 < float(used.float().mean()) < 0.95
-        for name in (TRAJ_MEANS, TRAJ_QUATS):
-            j = getattr(tr.model.gaussians, name).detach()[:, 0::3]
-            gap = (j[:, 1:] - j[:, :-1]).norm(dim=-1)  # [N, F-1]
-            gaps[(on, name)] = (float(gap[used].max()), float(gap[~used].max()))
-    assert gaps[(True, TRAJ_MEANS)][0] < 1e-6 and gaps[(True, TRAJ_QUATS)][0] < 1e-6
-    assert gaps[(True, TRAJ_MEANS)][1] > 1e-4  # over a change: apart
-    assert gaps[(False, TRAJ_MEANS)][0] > 1e-4  # what the switch exists to stop
-
-
 _TINY = {"iterations": 12, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
          "densify_from": 2.0, "densify_until": 2.0, "between_colocated_p": 1.0, "time_curriculum": 0.0,
          "spike_skip_static": False, "traj_carry": "velocity", "birth_error": 0.0}
@@ -189,7 +149,7 @@ def test_trainer_holds_quiet_curves_and_only_those(demo_capture):
 
 @pytest.mark.parametrize("refresh", [10, 50])
 def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
-    """``quiet_curves_refresh``: the hook recomputes its mask (projections + change-map lookups,
+    """``REFRESH``: the hook recomputes its mask (projections + change-map lookups,
     ~14 ms at 23k Gaussians) only after that many steps, when the Gaussian count changes, or
     for another curves tensor; in between every step applies the cached one."""
     import types
@@ -209,7 +169,8 @@ def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
     pts, K = _points_at([[2, 2], [14, 6]])
     stream = types.SimpleNamespace(view=lambda t: types.SimpleNamespace(viewmat=np.eye(4)), width=W, height=H,
                                    intrinsics=types.SimpleNamespace(K=K.numpy()))
-    tr = types.SimpleNamespace(cfg=get_preset("fast", {"quiet_curves_refresh": refresh}))
+    monkeypatch.setattr(qc, "REFRESH", refresh)
+    tr = types.SimpleNamespace(cfg=get_preset("fast"))
     hook = qc.QuietCurves(tr, stream, _change([(0, 0, 0)]), [0.0, 0.1, 0.2])
     m = trajectory_model([0.0, 0.1, 0.2], n=2)
     with torch.no_grad():
@@ -225,10 +186,10 @@ def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
 def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     import types
 
+    from engine.train import quiet_curves as qc
     from engine.train.quiet_curves import quiet_curves_factory
 
-    assert get_preset("fast").quiet_curves and get_preset("fast").quiet_curves_dilate == 1  # on (README)
-    assert not get_preset("fast").quiet_junctions  # off (README)
+    assert get_preset("fast").spike.quiet_curves and qc.DILATE == 1  # on, one block of dilation
     cfg = get_preset("fast", {"quiet_curves": True})
     tr = types.SimpleNamespace(cfg=cfg, spike_guidance=None, post_step_hooks=[])
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # rgb_only / no spikes: nothing
@@ -236,31 +197,3 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     tr.spike_guidance = object()
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # curves only
 
-
-def test_flatten_curves_script_zeroes_every_bend_and_keeps_the_junctions(tmp_path):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "flatten_curves.py"
-    spec = importlib.util.spec_from_file_location("flatten_curves", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "run.json").write_text("{}")
-    curves, quats = torch.randn(5, 7, 3), torch.randn(5, 7, 4)
-    params = {"means": torch.randn(5, 3), TRAJ_MEANS: curves.clone(), TRAJ_QUATS: quats.clone()}
-    torch.save({"model": {"gaussians": {"params": params}, "trajectory": {"knots": [0.0, 0.1, 0.2]}}},
-               run / "checkpoint.pt")
-    assert mod.main([str(run), str(tmp_path / "flat")]) == 0
-    out = torch.load(tmp_path / "flat" / "checkpoint.pt", weights_only=False)["model"]["gaussians"]["params"]
-    for name, before in ((TRAJ_MEANS, curves), (TRAJ_QUATS, quats)):
-        assert (out[name][:, [1, 2, 4, 5]] == 0).all() and torch.equal(out[name][:, 0::3], before[:, 0::3])
-    assert (tmp_path / "flat" / "run.json").exists()
-    assert torch.equal(torch.load(run / "checkpoint.pt", weights_only=False)["model"]["gaussians"]["params"]
-                       [TRAJ_MEANS], curves)  # the run itself is untouched
-    del params[TRAJ_MEANS]
-    torch.save({"model": {"gaussians": {"params": params}, "trajectory": {"knots": [0.0, 0.1, 0.2]}}},
-               run / "checkpoint.pt")
-    with pytest.raises(SystemExit, match="no per-Gaussian trajectories"):
-        mod.main([str(run), str(tmp_path / "flat2")])

@@ -236,45 +236,45 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s = bpy.context.scene.bt4d
     s.output_dir = str(tmp_path)
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"iterations": 5}
+    assert calls[-1]["overrides"] == {"schedule.iterations": 5}
     s.freeze_static = True
     s.early_stop = True
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"iterations": 5, "freeze_static": True, "early_stop": True}
+    assert calls[-1]["overrides"] == {"schedule.iterations": 5, "skip.freeze_static": True, "skip.early_stop": True}
     s.freeze_static = False
     assert bpy.ops.bt4d.reconstruct() == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"early_stop": True} and calls[-1]["seconds"] == s.seconds
+    assert calls[-1]["overrides"] == {"skip.early_stop": True} and calls[-1]["seconds"] == s.seconds
     # its tooltip says what the engine does: held-back train frames, never the eval frames
     assert "never the eval frames" in s.bl_rna.properties["early_stop"].description
     # the time budget's tooltip says what the step cap does, per preset (engine.train.budget.step_cap)
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     budget_tip = s.bl_rna.properties["seconds"].description
-    assert "twice the preset's step" in budget_tip and get_preset("fast").budget_step_cap == 2.0
-    assert "Balanced 1.5 times" in budget_tip and get_preset("balanced").budget_step_cap == 1.5
-    assert "Quality its own" in budget_tip and get_preset("quality").budget_step_cap == 1.0
+    assert "twice the preset's step" in budget_tip and get_preset("fast").schedule.step_cap == 2.0
+    assert "Balanced 1.5 times" in budget_tip and get_preset("balanced").schedule.step_cap == 1.5
+    assert "Quality its own" in budget_tip and get_preset("quality").schedule.step_cap == 1.0
     # "Motion": the engine's default (first item) passes nothing; another choice is passed
-    from engine.train.presets import TrainConfig
-    assert s.motion == TrainConfig().motion
+    from engine.train.config import TrainConfig
+    assert s.motion == TrainConfig().motion.representation
     s.early_stop = False
     s.motion = "hexplane"
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"iterations": 5, "motion": "hexplane"}
+    assert calls[-1]["overrides"] == {"schedule.iterations": 5, "motion.representation": "hexplane"}
     s.motion = "trajectory"
     # "Close Cracks at New Views": on is the engine's default (nothing passed); off turns the term off
-    from engine.train.presets import get_preset
-    assert s.close_cracks and get_preset("fast").lambda_cover > 0
+    from engine.train.config import get_preset
+    assert s.close_cracks and get_preset("fast").losses.cover > 0
     s.close_cracks = False
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"iterations": 5, "lambda_cover": 0.0}
+    assert calls[-1]["overrides"] == {"schedule.iterations": 5, "losses.cover": 0.0}
     s.crack_fill = "opacities+means"  # off wins: no term, nothing else passed
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"iterations": 5, "lambda_cover": 0.0}
+    assert calls[-1]["overrides"] == {"schedule.iterations": 5, "losses.cover": 0.0}
     s.close_cracks = True
     # "Fill Cracks By": the engine's default (first item) passes nothing; "Move Only" is passed
     from engine.train.geometry_losses import cover_grad_attrs
-    assert TrainConfig().cover_grad == "all" and cover_grad_attrs(s.crack_fill) == ("opacities", "means")
+    assert TrainConfig().losses.cover_grad == "all" and cover_grad_attrs(s.crack_fill) == ("opacities", "means")
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"iterations": 5, "cover_grad": "opacities+means"}
+    assert calls[-1]["overrides"] == {"schedule.iterations": 5, "losses.cover_grad": "opacities+means"}
     s.crack_fill = "all"
     s.early_stop = True
     r = bpy.context.scene.bt4d_run

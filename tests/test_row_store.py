@@ -10,7 +10,7 @@ import torch
 
 from engine.scene import row_store
 from engine.scene.gaussians import GaussianModel
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 
 
 @pytest.fixture(autouse=True)
@@ -87,7 +87,7 @@ def test_exact_copies_only_a_view_with_spare_rows():
 def _model(n=50):
     g = GaussianModel(_rand(n, 3), _rand(n, 3, seed=1).abs() + 0.1)
     g.add_extra("traj_means", _rand(n, 7, 3, seed=2), 1e-3)
-    g.setup_optimizer(get_preset("fast", {"gaussian_adam": "exact"}), 1.0)
+    g.setup_optimizer(get_preset("fast", {"gaussian_adam": "exact"}).gaussians, 1.0)
     return g
 
 

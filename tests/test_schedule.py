@@ -13,7 +13,7 @@ from engine.io.capture import load_capture
 from engine.io.checkpoint import load_checkpoint
 from engine.train import train
 from engine.train import trainer as trainer_mod
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 from engine.train.schedule import Schedule
 from tools.synthetic import write_synthetic_capture
 
@@ -26,26 +26,26 @@ def tiny_capture(tmp_path_factory):
 
 def _old(cfg, total, step):
     """The schedules as the trainer computed them from ``step / total_steps`` before the clock."""
-    s0 = int(round(cfg.static_fraction * total))
-    lo, hi = int(cfg.densify_from * total), int(cfg.densify_until * total)
-    every = max(1, min(cfg.densify_every, max(1, (hi - lo) // 3)))
+    s0 = int(round(cfg.schedule.static_fraction * total))
+    lo, hi = int(cfg.densify.start * total), int(cfg.densify.stop * total)
+    every = max(1, min(cfg.densify.every, max(1, (hi - lo) // 3)))
     deform = max(1, total - s0)
     f_start, f_every = s0 + int(0.3 * deform), max(1, deform // 20)
     return {"stage": "static" if step < s0 else "deform", "s0": s0,
             "curriculum": (step - s0) / max(1, total - s0),
             "lr": step / max(1, total - 1), "deform_lr": (step - s0) / max(1, total - s0 - 1),
-            "sh": min(cfg.sh_degree, int(step / max(1, cfg.sh_step_fraction * total))),
+            "sh": min(cfg.gaussians.sh_degree, int(step / max(1, cfg.gaussians.sh_step_fraction * total))),
             "stats": step < hi, "densify": lo <= step < hi and step > 0 and (step - lo) % every == 0 and step != lo,
             "freeze_check": step >= f_start and (step - f_start) % f_every == 0}
 
 
 def _new(cfg, sch, step):
-    s0 = sch.static_end(cfg.static_fraction)
+    s0 = sch.static_end(cfg.schedule.static_fraction)
     deform = max(1, sch.nominal - s0)
-    return {"stage": "static" if step < sch.static_steps(cfg.static_fraction) else "deform",
-            "s0": sch.static_steps(cfg.static_fraction),
-            "curriculum": sch.deform_progress(step, cfg.static_fraction),
-            "lr": sch.run_progress(step), "deform_lr": sch.deform_progress(step, cfg.static_fraction, last=1),
+    return {"stage": "static" if step < sch.static_steps(cfg.schedule.static_fraction) else "deform",
+            "s0": sch.static_steps(cfg.schedule.static_fraction),
+            "curriculum": sch.deform_progress(step, cfg.schedule.static_fraction),
+            "lr": sch.run_progress(step), "deform_lr": sch.deform_progress(step, cfg.schedule.static_fraction, last=1),
             "sh": sch.sh_degree(step, cfg), "stats": sch.in_densify_window(step, cfg),
             "densify": sch.densify_due(step, cfg),
             "freeze_check": sch.mark_at(step, s0 + int(0.3 * deform), max(1, deform // 20)) is not None}
@@ -124,7 +124,7 @@ def test_trainer_reads_the_clock_through_a_re_plan(tiny_capture):
     assert (np.diff(lr) <= 1e-15).all() and (np.diff(sh) >= 0).all()
     # no step moves the curriculum further than its plain per-step pace times the clock's rate
     span = tr.frame_times[-1] - tr.frame_times[0]
-    pace = span / (cfg.time_curriculum * (100 - tr.schedule.static_end(0.3)))
+    pace = span / (cfg.schedule.time_curriculum * (100 - tr.schedule.static_end(0.3)))
     assert np.diff(window).max() <= pace * max(r for _, _, r in tr.schedule.segments) + 1e-9
     assert tr.static_steps == int(deform.argmax())
 

@@ -12,7 +12,7 @@ from engine.scene.fused_adam import FusedAdam
 from engine.scene.gaussians import GaussianModel
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
 from engine.scene.selective_adam import SelectiveAdam, _spans, reference_step
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 
 N = 2053
 SHAPES = [(N,), (N, 3), (N, 1, 3), (N, 19, 3), (N, 19, 4)]
@@ -166,7 +166,7 @@ def _model(cfg, n=300, seed=0):
     rng = np.random.default_rng(seed)
     pts = rng.uniform(-1, 1, size=(n, 3)) * [1.5, 1.0, 0.3] + [0, 0, 4.0]
     g = GaussianModel(pts, rng.uniform(size=(n, 3)))
-    g.setup_optimizer(cfg, 1.0)
+    g.setup_optimizer(cfg.gaussians, 1.0)
     m = Model4D(g)
     m.add_trajectories([0.0, 0.1, 0.2, 0.3], 1e-3, 1e-3)
     m.use_deformation = True

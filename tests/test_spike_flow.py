@@ -7,10 +7,10 @@ import types
 import numpy as np
 import pytest
 import torch
-from train_util import term_values, trajectory_model
+from train_util import patch_constants, term_values, trajectory_model
 
 from engine.scene.model import TRAJ_MEANS
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 from engine.train.spike_flow import (
     SpikeFlowSupervision,
     flow_pair,
@@ -156,9 +156,20 @@ def test_loss_gradient_is_in_the_image_plane():
     assert float((g * ray).sum(1).abs().max()) < 1e-6 * float(g.norm(dim=1).max()) + 1e-9
 
 
+_MP = []  # this test's monkeypatch (the autouse fixture below): constants patched for its duration
+
+
+@pytest.fixture(autouse=True)
+def _monkeypatch_for_helpers(monkeypatch):
+    _MP[:] = [monkeypatch]
+    yield
+    _MP.clear()
+
+
 def _bare_supervision(**over) -> SpikeFlowSupervision:
-    """The term on a fake 80 x 60 spike stream at the identity pose, RGB instants KNOTS."""
-    cfg = get_preset("fast", {"spike_flow_weight": 1.0, **over})
+    """The term on a fake 80 x 60 spike stream at the identity pose, RGB instants KNOTS; ``over``
+    may name the flow's constants by their old setting names (train_util.CONSTANTS)."""
+    cfg = get_preset("fast", {"spike_flow_weight": 1.0, **patch_constants(_MP[0], over)})
     view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
     stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
     return SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
@@ -208,7 +219,7 @@ def test_warm_flows_start_from_the_grid_instant_one_step_closer():
     backward) pair to the grid instant one step closer to that RGB instant, computed first and
     once; only chain ends with a successor are kept (grid 0.125, 0.15, 0.175 in [0.1, 0.2])."""
     sup, calls = _fake_supervision()
-    assert get_preset("fast").spike_flow_warm  # on by default (README)
+    assert get_preset("fast").spike_flow.warm  # on by default (README)
     sup.flow(0.2, 0.125)  # back from 0.2: 0.175 from zero, then 0.15, then 0.125
     assert [round(t, 6) for _, t in calls] == [0.175, 0.15, 0.125]
     assert sup.inits[0] is None
@@ -226,7 +237,7 @@ def test_warm_flows_start_from_the_grid_instant_one_step_closer():
 
 def test_switch_off_builds_no_term():
     cfg = get_preset("fast", {"spike_flow_weight": 0.0})
-    assert get_preset("fast").spike_flow_weight == 1.0  # on by default (README)
+    assert get_preset("fast").spike_flow.weight == 1.0  # on by default (README)
     stream = types.SimpleNamespace(c2w=np.eye(4), intrinsics=object())
     guid = types.SimpleNamespace(renderer=object(), stream=stream)
     tr = types.SimpleNamespace(cfg=cfg, spike_guidance=guid)
@@ -270,7 +281,7 @@ def test_run_records_the_interval_fits_and_junction_moves(demo_capture, tmp_path
 
     from engine.train import train
 
-    assert get_preset("fast").spike_flow_junctions == "all"
+    assert get_preset("fast").spike_flow.junctions == "all"
     summary = train(demo_capture, tmp_path / "run", preset="fast", overrides={**_TINY, "iterations": 12},
                     resume=False)
     assert summary["status"] == "finished"
@@ -396,7 +407,7 @@ def test_flow_junctions_take_the_other_end_from_the_flow():
     from engine.train.births import ensure_temporal_opacity
 
     sup, _ = _fake_supervision(steps=3)
-    sup.cfg = sup.cfg.replace(spike_flow_min_px=0.5)
+    patch_constants(_MP[0], {"spike_flow_min_px": 0.5})
     sup.estimate = lambda t_ref, t, init=None: (
         np.tile(np.array([4.0 * (t - t_ref) / 0.1, 0.0], np.float32), (60, 80, 1)), np.ones((60, 80), bool), None)
     m = _traj_model(n=12)
@@ -428,7 +439,7 @@ def test_flow_junctions_take_the_other_end_from_the_flow():
     uv_j, _ = project(g.means.detach()[8:] + getattr(g, TRAJ_MEANS).detach()[8:, 6], VIEWMAT, K)
     assert torch.allclose(uv_j - uv[8:], torch.tensor([4.0, 0.0]).expand(4, 2), atol=1e-3)
     # a flow under spike_flow_min_px moves nothing
-    sup.cfg = sup.cfg.replace(spike_flow_min_px=10.0)
+    patch_constants(_MP[0], {"spike_flow_min_px": 10.0})
     assert sup.flow_junctions(m, 1, 0.1, 0.2, idx, uv)["moved"] == 0
 
 
@@ -559,7 +570,9 @@ def test_prefetch_computes_the_admitted_chains_on_its_thread_as_the_step_would()
     import threading
 
     inline, calls0 = _fake_supervision(spike_flow_prefetch=0)
-    assert inline._worker is None and get_preset("fast").spike_flow_prefetch == 2  # on by default (README)
+    from engine.train import spike_flow_cache
+
+    assert inline._worker is None and spike_flow_cache.PREFETCH == 2  # on by default
     sup, calls = _fake_supervision(spike_flow_prefetch=1)
     threads = []
     est = sup.estimate
@@ -604,7 +617,8 @@ def test_prefetched_flows_train_bit_for_bit_like_inline_ones(demo_capture):
     digests, ran = [], []
     for ahead in (0, 2):
         torch.manual_seed(0)
-        tr = Trainer(cap, get_preset("fast", {**_TINY, "spike_flow_prefetch": ahead}), device="cpu")
+        over = patch_constants(_MP[0], {**_TINY, "spike_flow_prefetch": ahead})
+        tr = Trainer(cap, get_preset("fast", over), device="cpu")
         tr.init_model()
         for i in range(8):
             tr.step(i)

@@ -11,7 +11,7 @@ from train_util import frame_items
 from engine.io.capture import load_capture
 from engine.scene.fine_deformation import SpikeFineEncoder
 from engine.scene.model import view_tensors
-from engine.train.presets import TrainConfig
+from engine.train.config import TrainConfig
 from engine.train.spike_guidance import (
     SpikeGuidance,
     _block_term,
@@ -71,7 +71,7 @@ def test_between_render_once_per_step_and_only_in_deform(cap):
     assert g.between(ctx) is b  # cached for the step: spike and block terms share one render
     assert b["rgb"].shape == (1, 60, 80, 3) and b["scale"] == 0.5  # half-resolution between renders
     assert g.between(_ctx(tr, stage="static")) is None
-    tr.cfg.between_every = 3
+    tr.cfg.spike.between_every = 3
     assert g.between(_ctx(tr, step=11)) is None
 
 
@@ -83,7 +83,7 @@ def test_spike_term_gradient_brightens_a_too_dark_render(cap):
     assert torch.isfinite(loss) and float(loss.detach()) > 0
     loss.backward()
     assert float(tr.model.level.grad) < 0  # gradient descent raises the level
-    tr.cfg.spike_loss_mode = "if"
+    tr.cfg.spike.loss_mode = "if"
     tr.model.level.grad = None
     loss_if = _spike_term(g)(_ctx(tr, step=12))
     loss_if.backward()
@@ -163,12 +163,12 @@ def test_scaled_view_keeps_field_of_view(cap):
 # ----------------------------------------------------------------------------- with the real trainer
 
 def _integrated() -> bool:
-    from engine.train.presets import TrainConfig
+    from engine.train.config import TrainConfig
     return hasattr(TrainConfig, "spike_loss_weight")
 
 
 needs_trainer_integration = pytest.mark.skipif(not _integrated(), reason="spike guidance not wired into "
-                                               "engine.train / engine.train.presets yet")
+                                               "engine.train / engine.train.config yet")
 
 _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init_random_points": 100,
          "densify_from": 2.0, "densify_until": 2.0, "fine_d_model": 16, "fine_channels": 8, "fine_k_sub": 4,
@@ -180,7 +180,7 @@ _TINY = {"iterations": 6, "static_fraction": 0.34, "init_max_points": 300, "init
 def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_path):
     from engine.scene.model import load_run
     from engine.train import train
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
 
     tr = Trainer(cap, get_preset("fast", _TINY), device="cpu")
@@ -217,7 +217,7 @@ def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_
 def test_rgb_only_and_spikeless_captures_skip_the_spike_branch(cap):
     import dataclasses
 
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
 
     rgb = Trainer(cap, get_preset("fast", _TINY), device="cpu", rgb_only=True)
@@ -235,11 +235,12 @@ def test_rgb_only_and_spikeless_captures_skip_the_spike_branch(cap):
 
 
 @needs_trainer_integration
-def test_baseline_training_data_variant(cap, tmp_path):
-    from engine.train import train
+def test_baseline_training_data_variant(cap, tmp_path, monkeypatch):
+    from engine.train import baselines, train
 
+    monkeypatch.setattr(baselines, "PER_INTERVAL", 2)
     summary = train(cap, tmp_path / "rep", preset="fast", rgb_only=True, resume=False,
-                    overrides={**_TINY, "iterations": 2, "baseline": "repeat", "baseline_per_interval": 2})
+                    overrides={**_TINY, "iterations": 2, "baseline": "repeat"})
     assert summary["status"] == "finished"
     import json
     info = json.loads((tmp_path / "rep" / "run.json").read_text())
@@ -254,7 +255,7 @@ def test_between_instants_follow_the_trainers_time_curriculum(cap):
     tr.time_window = lambda step: 0.05
     times = [g.between(_ctx(tr, step=s))["instant"].time for s in range(30, 60)]
     assert max(times) <= 0.05 + 1e-4 and min(times) > 0.0
-    tr.cfg.between_curriculum = False  # switched off: the whole stream from the first step
+    tr.cfg.spike.between_curriculum = False  # switched off: the whole stream from the first step
     assert max(g.between(_ctx(tr, step=s))["instant"].time for s in range(60, 120)) > 0.1
 
 
@@ -321,17 +322,20 @@ def test_run_renders_its_fine_branch_without_the_capture(demo_capture, tmp_path)
 @needs_trainer_integration
 @pytest.mark.slow
 @pytest.mark.parametrize("frozen", [False, True])
-def test_fine_encoder_every_reaches_the_encoder_and_each_step_ticks_it(cap, frozen):
-    """``fine_encoder_every`` goes through the spec to the encoder's kept windows, every
+def test_fine_encoder_every_reaches_the_encoder_and_each_step_ticks_it(cap, frozen, monkeypatch):
+    """``FINE_ENCODER_EVERY`` goes through the spec to the encoder's kept windows, every
     training step advances their clock; with k > 1 later steps reuse kept tokens (stale), and
     a frozen encoder (the default) encodes each window once for the run (shared)."""
     from engine.scene.fine_deformation import EncodedWindows
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
 
-    assert get_preset("fast").fine_frozen_encoder  # the default (README, Spike guidance)
+    assert get_preset("fast").spike.fine_frozen_encoder  # the default (README, Spike guidance)
+    from engine.train import spike_guidance
+
+    monkeypatch.setattr(spike_guidance, "FINE_ENCODER_EVERY", 50)
     tr = Trainer(cap, get_preset("fast", {**_TINY, "iterations": 10, "static_fraction": 0.2,
-                                          "fine_encoder_every": 50, "fine_frozen_encoder": frozen}), device="cpu")
+                                          "fine_frozen_encoder": frozen}), device="cpu")
     tr.init_model()
     for step in range(10):
         tr.step(step)

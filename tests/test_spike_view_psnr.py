@@ -1,4 +1,4 @@
-"""scripts/spike_view_psnr.py: scores runs at the spike camera against the generator's light."""
+"""tools/spike_view_psnr.py: scores runs at the spike camera against the generator's light."""
 from __future__ import annotations
 
 import importlib.util
@@ -13,7 +13,7 @@ from engine.colour import linear_to_srgb
 
 
 def _script(repo_root):
-    spec = importlib.util.spec_from_file_location("spike_view_psnr", repo_root / "scripts" / "spike_view_psnr.py")
+    spec = importlib.util.spec_from_file_location("spike_view_psnr", repo_root / "tools" / "spike_view_psnr.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

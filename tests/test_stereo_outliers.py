@@ -173,14 +173,14 @@ def test_backdrop_gaussians_get_their_opacity_once_at_the_first_step():
 
     import torch
 
+    from engine.train.config import get_preset
     from engine.train.geometry_losses import geometry_post_step_hooks
-    from engine.train.presets import get_preset
 
     no_decay = {"opacity_decay": 1.0}  # the default's opacity decay is a hook of its own
-    cfg = get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9, **no_decay})
+    cfg = get_preset("fast", {"init_backdrop": 0.3, **no_decay})
     hooks = geometry_post_step_hooks(cfg)
     assert len(hooks) == 1 and not geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.0, **no_decay}))
-    assert len(geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.3, "backdrop_opacity": 0.9}))) == 2
+    assert len(geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.3}))) == 2
     logits = torch.full((10, 1), float(torch.logit(torch.tensor(0.1))))
     g = SimpleNamespace(opacity_logits=torch.nn.Parameter(logits.clone()), num_gaussians=10)
     tr = SimpleNamespace(init_info={"backdrop": 4, "num_points": 10}, model=SimpleNamespace(gaussians=g))
@@ -212,27 +212,6 @@ def test_initial_points_with_planes_and_backdrop(demo_capture):
     assert np.median(dist) < 1e-3
 
 
-def test_depth_prior_adds_the_plane_where_stereo_is_empty_and_agrees():
-    from engine.geometry.depth_priors import plane_prior
-
-    view = _camera()
-    vv, uu = np.mgrid[0:H, 0:W] + 0.5
-    truth = _analytic_depth(view, uu, vv)
-    planes = fit_planes(_room(), 0.01)
-    ok = np.ones((H, W), bool)
-    ok[50:66, 10:40] = False                       # floor stereo missed: the plane fills it
-    ok[5:15, 60:70] = False                        # empty in front of an object 40 % nearer
-    depth = np.where(ok, truth, 0.0).astype(np.float32)
-    depth[:, 55:75] = np.where(ok[:, 55:75], truth[:, 55:75], 0.0) * np.where(
-        (np.arange(H)[:, None] >= 3) & (np.arange(H)[:, None] < 17), 0.6, 1.0)
-    d, m = plane_prior(view, depth, ok, planes)
-    assert m[50:66, 10:40].all()
-    added = m & ~ok
-    assert np.allclose(d[added], truth[added], rtol=0.005)
-    assert not m[5:15, 60:70].any()                # the plane disagrees with the object around it
-    assert np.array_equal(d[ok], depth[ok])
-
-
 def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
     """The init_backdrop ring (beyond the image borders) is left out of the scene extent (lr,
     densify thresholds, near plane) and of the deformation field's bounds; without a backdrop
@@ -240,7 +219,7 @@ def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
     import warnings
 
     from engine.io.capture import load_capture
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer, inside_box, robust_bounds, scene_points
     from tools.synthetic import write_synthetic_capture
 
@@ -277,8 +256,8 @@ def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
 
 
 def test_planes_and_backdrop_are_on_in_every_preset():
-    from engine.train.presets import PRESETS, get_preset
+    from engine.train.config import PRESETS, get_preset
 
     for name in PRESETS:
         cfg = get_preset(name)
-        assert cfg.init_planes and cfg.init_backdrop == 0.3 and cfg.backdrop_opacity == 0.9
+        assert cfg.init.planes and cfg.init.backdrop == 0.3

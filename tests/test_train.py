@@ -17,8 +17,8 @@ from engine.train import run as run_mod
 from engine.train import train
 from engine.train import trainer as trainer_mod
 from engine.train.budget import steps_for_budget
+from engine.train.config import PRESETS, TrainConfig, get_preset
 from engine.train.losses import LossTerm
-from engine.train.presets import PRESETS, TrainConfig, get_preset
 from tools.synthetic import write_synthetic_capture
 
 TINY = dict(width=32, height=24, n_rgb=3, eval_fps=60.0)
@@ -218,12 +218,12 @@ def test_run_json_layout(tiny_capture, tmp_path):
 def test_presets_exist_and_are_sized():
     assert set(PRESETS) == {"fast", "balanced", "quality"}
     f, b, q = (get_preset(n) for n in ("fast", "balanced", "quality"))
-    assert f.iterations < b.iterations < q.iterations
-    assert 60 <= f.expected_seconds <= 120 and 200 <= b.expected_seconds <= 600 and 600 <= q.expected_seconds <= 1200
-    assert f.max_gaussians < b.max_gaussians < q.max_gaussians
-    assert not f.deform_scale and f.sh_degree == 0
-    c = get_preset("fast", {"iterations": 7, "hex_multires": [1, 2, 4]})
-    assert c.iterations == 7 and c.hex_multires == (1, 2, 4)
+    assert f.schedule.iterations < b.schedule.iterations < q.schedule.iterations
+    assert f.densify.max_gaussians < b.densify.max_gaussians < q.densify.max_gaussians
+    assert not f.hexplane.deform_scale and f.gaussians.sh_degree == 0
+    c = get_preset("fast", {"iterations": 7, "losses.background": [0.5, 0.5, 0.5]})
+    assert c.schedule.iterations == 7 and c.losses.background == (0.5, 0.5, 0.5)
+    assert get_preset("fast", {"schedule.iterations": 7}) == get_preset("fast", {"iterations": 7})
     with pytest.raises(KeyError):
         get_preset("fast", {"no_such_field": 1})
     with pytest.raises(KeyError):
@@ -234,15 +234,15 @@ def test_presets_exist_and_are_sized():
 def test_motion_defaults_and_the_block_weight_by_motion():
     """Per-Gaussian trajectories carried by flow are the default motion; the block colour loss
     (Eq. 20) is on with the HexPlane field alone and off with trajectories unless asked for."""
-    from engine.train.presets import block_weight
+    from engine.train.config import block_weight
 
     f = get_preset("fast")
-    assert f.motion == "trajectory" and f.traj_carry == "flow" and f.block_loss_weight is None
+    assert f.motion.representation == "trajectory" and f.motion.carry == "flow" and f.spike.block_loss_weight is None
     assert block_weight(f) == 0.0
     assert block_weight(get_preset("fast", {"motion": "hexplane"})) == 1.0
     assert block_weight(get_preset("fast", {"motion": "trajectory+hexplane"})) == 0.0
     c = get_preset("fast", {"block_loss_weight": 2})  # as `--set block_loss_weight=2` parses it
-    assert c.block_loss_weight == 2.0 and isinstance(c.block_loss_weight, float) and block_weight(c) == 2.0
+    assert c.spike.block_loss_weight == 2.0 and isinstance(c.spike.block_loss_weight, float) and block_weight(c) == 2.0
     assert block_weight(get_preset("fast", {"motion": "hexplane", "block_loss_weight": 0})) == 0.0
     assert TrainConfig.from_dict(f.to_dict()) == f
 
@@ -262,7 +262,7 @@ def test_seconds_budget_sizes_the_schedule(tiny_capture, tmp_path):
     s = train(tiny_capture, run, seconds=4.0, overrides={"init": "ply"})
     info = read_run_json(run)
     assert s["status"] == "finished" and info["seconds_budget"] == 4.0
-    assert s["total_steps"] == info["total_steps"] >= 20 and s["total_steps"] != get_preset("fast").iterations
+    assert s["total_steps"] == info["total_steps"] >= 20 and s["total_steps"] != get_preset("fast").schedule.iterations
     assert isinstance(s["stopped_by_budget"], bool)
     assert s["step"] == s["total_steps"] or s["stopped_by_budget"]
     # resuming keeps the step count chosen for the budget (no re-measurement)
@@ -318,9 +318,6 @@ def test_time_curriculum_admits_frames_in_order_and_carries_motion_forward(tiny_
     assert tr.time_window(20) == times[0] and tr.time_window(60) == pytest.approx(times[-1])
     assert set(tr.frame_pool(99)) == set(range(len(tr.items)))
     assert tr.time_window(40) == pytest.approx(times[0] + (times[-1] - times[0]) * 0.5)
-    all_frames = Trainer(cap, get_preset("fast", {"init": "ply", "static_frames": "all"}), device="cpu",
-                         total_steps=100)
-    assert set(all_frames.frame_pool(0)) == set(range(len(tr.items)))
 
     tr.init_model()
     tr.start_deformation()
@@ -361,15 +358,32 @@ def test_loss_terms_block_and_stereo_depth():
 
 # ------------------------------------------------------------------------------- skipping
 # freezing skips the HexPlane field (it turns itself off with trajectories)
-FREEZE = {"motion": "hexplane", "freeze_static": True, "freeze_start_fraction": 0.0, "freeze_checks_per_stage": 10,
-          "freeze_k_checks": 2}
+FREEZE = {"motion": "hexplane", "freeze_static": True, "freeze_k_checks": 2}
+
+
+def _freeze_early(monkeypatch, *, proxy_frames=2, **early):
+    """The freezer's checks from the start of the deformation stage, ten per stage; the early
+    stop's proxy of ``proxy_frames`` frames and its other constants as given (tiny runs)."""
+    from engine.train import early_stop, freezing
+
+    monkeypatch.setattr(freezing, "START_FRACTION", 0.0)
+    monkeypatch.setattr(freezing, "CHECKS_PER_STAGE", 10)
+    monkeypatch.setattr(early_stop, "PROXY_FRAMES", proxy_frames)
+    for name, value in early.items():
+        monkeypatch.setattr(early_stop, name, value)
 # learning rates ~0 and no densification: nothing changes, the proxy PSNR is a plateau
 FROZEN_LRS = {k: 1e-12 for k in ("lr_means", "lr_means_final", "lr_scales", "lr_quats", "lr_opacities", "lr_sh_dc",
-                                 "lr_sh_rest", "lr_grid", "lr_grid_final", "lr_mlp", "lr_mlp_final",
-                                 "lr_traj", "lr_traj_final", "lr_traj_quats")}
+                                 "lr_grid", "lr_mlp", "lr_traj", "lr_traj_final", "lr_traj_quats")}
 
 
-def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_path):
+def _frozen_field_lrs(monkeypatch):
+    """The HexPlane's final learning rates (module constants) at ~0 too, for FROZEN_LRS."""
+    monkeypatch.setattr(trainer_mod, "LR_GRID_FINAL", 1e-12)
+    monkeypatch.setattr(trainer_mod, "LR_MLP_FINAL", 1e-12)
+
+
+def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_path, monkeypatch):
+    _freeze_early(monkeypatch)
     ov = {"iterations": 40, "static_fraction": 0.25, "init": "ply", "densify_from": 2.0}
     off = train(tiny_capture, tmp_path / "off", overrides=ov, rgb_only=True)
     assert off["skips"] == {} and off["stopped_early"] is None
@@ -393,10 +407,12 @@ def test_freeze_static_freezes_the_static_background_rgb_only(tiny_capture, tmp_
     assert moved[mask.numpy()].max() == 0.0 and moved.max() > 0
 
 
-def test_early_stop_stops_on_a_plateau_with_held_back_train_proxy(tiny_capture, tmp_path):
+def test_early_stop_stops_on_a_plateau_with_held_back_train_proxy(tiny_capture, tmp_path, monkeypatch):
+    _freeze_early(monkeypatch)
+    _frozen_field_lrs(monkeypatch)
     # births off: Gaussians born at admitted instants would end the plateau this test builds
     ov = {"iterations": 40, "static_fraction": 0.25, "init": "ply", "densify_from": 2.0, "early_stop": True,
-          "early_stop_proxy_frames": 2, "birth_error": 0.0, **FROZEN_LRS}
+          "birth_error": 0.0, **FROZEN_LRS}
     run = tmp_path / "es"
     s = train(tiny_capture, run, overrides=ov, rgb_only=True)
     st = s["stopped_early"]
@@ -424,7 +440,8 @@ def test_early_stop_stops_on_a_plateau_with_held_back_train_proxy(tiny_capture, 
 
 def test_early_stop_holds_back_train_frames_and_never_scores_eval_frames(tiny_capture, monkeypatch):
     """The held-back frames leave the training set, and the proxy scores them (not eval)."""
-    ov = {"iterations": 10, "init": "ply", "early_stop": True, "early_stop_proxy_frames": 2}
+    _freeze_early(monkeypatch)
+    ov = {"iterations": 10, "init": "ply", "early_stop": True}
     cap = load_capture(tiny_capture)
     tr = trainer_mod.Trainer(cap, get_preset("fast", ov), device="cpu", rgb_only=True)
     held = {(f.camera, round(f.time, 6)) for f in tr.held_back}
@@ -450,7 +467,8 @@ def test_early_stop_holds_back_train_frames_and_never_scores_eval_frames(tiny_ca
     assert "held back from training" in early and "never the eval frames" in early
 
 
-def test_early_stop_is_off_without_a_multi_camera_instant(tiny_capture, tmp_path):
+def test_early_stop_is_off_without_a_multi_camera_instant(tiny_capture, tmp_path, monkeypatch):
+    _freeze_early(monkeypatch)
     import shutil
 
     cap = tmp_path / "mono"
@@ -459,7 +477,7 @@ def test_early_stop_is_off_without_a_multi_camera_instant(tiny_capture, tmp_path
     tj["frames"] = [f for f in tj["frames"] if f["camera"] != "rgb1"]
     tj["cameras"].pop("rgb1")
     (cap / "transforms.json").write_text(json.dumps(tj))
-    ov = {"iterations": 12, "init": "ply", "early_stop": True, "early_stop_proxy_frames": 2}
+    ov = {"iterations": 12, "init": "ply", "early_stop": True}
     s = train(cap, tmp_path / "run", overrides=ov, rgb_only=True)
     assert s["step"] == 12 and s["stopped_early"] is None
     note = read_run_json(tmp_path / "run")["early_stop_proxy"]
@@ -489,10 +507,10 @@ def test_cull_frustum_prunes_gaussians_behind_every_camera(tiny_capture, tmp_pat
     assert float(load_checkpoint(tmp_path / "off")["model"]["gaussians"]["params"]["means"][:, 1].min()) < -5.0
 
 
-def test_skip_state_survives_cancel_and_resume(tiny_capture, tmp_path):
+def test_skip_state_survives_cancel_and_resume(tiny_capture, tmp_path, monkeypatch):
+    _freeze_early(monkeypatch, MIN_DEFORM_FRACTION=0.9, EVERY_FRACTION=0.1)
     ov = {"iterations": 40, "static_fraction": 0.4, "densify_from": 0.1, "densify_every": 10, "init": "ply",
-          **FREEZE, "early_stop": True, "early_stop_min_deform_fraction": 0.9, "early_stop_every_fraction": 0.1,
-          "early_stop_proxy_frames": 2, "cull_frustum": True}
+          **FREEZE, "early_stop": True, "cull_frustum": True}
     full = tmp_path / "full"
     s_full = train(tiny_capture, full, overrides=ov, seed=3, device="cpu", rgb_only=True)
     assert s_full["skips"]["freeze"]["frozen"] > 0  # the freezer had something to carry over
@@ -607,7 +625,7 @@ def test_budget_plans_at_most_the_step_cap(tiny_capture):
     from engine.train.trainer import Trainer
 
     cfg = get_preset("fast")
-    assert step_cap(cfg) == 2 * cfg.iterations == 2000
+    assert step_cap(cfg) == 2 * cfg.schedule.iterations == 2000
     # balanced and quality lose LPIPS at twice their steps (README, "The step cap"): 1.5x and 1x
     assert step_cap(get_preset("balanced")) == 3750 and step_cap(get_preset("quality")) == 3000
     assert steps_for_budget(1e6, 0.01, 0.01, cfg) == 2000
@@ -745,4 +763,4 @@ def test_spike_guided_runs_use_their_own_time_smoothness():
         tr = types.SimpleNamespace(model=types.SimpleNamespace(deformation=field, use_deformation=True), cfg=cfg,
                                    guided=guided)
         _deform_reg(types.SimpleNamespace(trainer=tr))
-    assert seen == [cfg.time_smooth_weight, cfg.spike_time_smooth_weight] and seen[0] != seen[1]
+    assert seen == [cfg.hexplane.time_smooth_weight, cfg.spike.time_smooth_weight] and seen[0] != seen[1]

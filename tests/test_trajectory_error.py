@@ -1,4 +1,4 @@
-"""The trajectory-error diagnostic (scripts/trajectory_error.py, issue 11) on synthetic truth."""
+"""The trajectory-error diagnostic (tools/trajectory_error.py, issue 11) on synthetic truth."""
 from __future__ import annotations
 
 import importlib.util
@@ -11,7 +11,7 @@ from engine.cameras import Intrinsics, View, look_at_c2w
 from engine.errors import CaptureError
 
 _spec = importlib.util.spec_from_file_location("trajectory_error", __file__.rsplit("/tests/", 1)[0]
-                                               + "/scripts/trajectory_error.py")
+                                               + "/tools/trajectory_error.py")
 te = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(te)
 

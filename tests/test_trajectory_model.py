@@ -8,7 +8,7 @@ import torch
 from engine.scene.gaussians import GaussianModel
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D
 from engine.scene.trajectory import evaluate, junctions, num_controls
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 
 KNOTS = [0.0, 0.1, 0.2, 0.3]
 
@@ -16,7 +16,7 @@ KNOTS = [0.0, 0.1, 0.2, 0.3]
 def _model(n=40, seed=0):
     rng = np.random.default_rng(seed)
     g = GaussianModel(rng.normal(size=(n, 3)), rng.uniform(size=(n, 3)))
-    g.setup_optimizer(get_preset("fast"), 1.0)
+    g.setup_optimizer(get_preset("fast").gaussians, 1.0)
     m = Model4D(g)
     m.add_trajectories(KNOTS, 1e-3, 1e-3)
     m.use_deformation = True
@@ -149,24 +149,6 @@ def test_unknown_motion_is_an_error(demo_capture, tmp_path):
     with pytest.raises(ValueError, match="motion"):
         train(demo_capture, tmp_path / "run", preset="fast", rgb_only=True, resume=False,
               overrides={**_TINY, "motion": "splines"})
-
-
-def test_rigidity_term_in_a_training_step(demo_capture):
-    """The rigidity switch adds a finite loss term that reaches the trajectories."""
-    from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
-
-    cfg = get_preset("fast", {**_TINY, "motion": "trajectory", "traj_carry": "velocity", "rigidity_weight": 1.0,
-                              "densify_from": 2.0, "densify_until": 2.0, "static_fraction": 0.1})
-    tr = Trainer(load_capture(demo_capture), cfg, device="cpu", rgb_only=True)
-    assert "rigidity" in {t.name for t in tr.loss_terms}
-    tr.init_model()
-    seen = []
-    for step in range(4):
-        out = tr.step(step)
-        seen.append(out["losses"].get("rigidity"))
-    vals = [v for v in seen if v is not None]
-    assert vals and all(np.isfinite(v) for v in vals)
 
 
 def test_spike_guided_steps_move_inner_control_points(demo_capture):

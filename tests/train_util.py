@@ -21,12 +21,12 @@ def trajectory_model(knots, n: int, seed: int = 0, spread: float = 0.1, centre=(
     with per-Gaussian trajectories over ``knots``, all at rest (zero curves), optimiser set up."""
     from engine.scene.gaussians import GaussianModel
     from engine.scene.model import Model4D
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
 
     rng = np.random.default_rng(seed)
     xyz = rng.normal(size=(n, 3)) * spread + np.asarray(centre, np.float64)
     g = GaussianModel(xyz, rng.uniform(size=(n, 3)))
-    g.setup_optimizer(get_preset("fast"), 1.0)
+    g.setup_optimizer(get_preset("fast").gaussians, 1.0)
     m = Model4D(g)
     m.add_trajectories(knots, 1e-3, 1e-3)
     m.use_deformation = True
@@ -54,3 +54,38 @@ GUIDED_TINY = {"iterations": 8, "static_fraction": 0.25, "init_max_points": 300,
                "densify_from": 2.0, "densify_until": 2.0, "block_interp": "linear", "between_colocated_p": 1.0,
                "time_curriculum": 0.0, "spike_skip_static": False, "fine_d_model": 16, "fine_channels": 8,
                "fine_k_sub": 4}
+
+
+# engineering constants that were training settings before the config redesign: the old setting
+# name -> (module, constant). Tests that need another value patch the constant for their duration.
+CONSTANTS = {
+    "lazy_min_columns": ("engine.scene.gaussians", "LAZY_MIN_COLUMNS"),
+    "lazy_rgb_only": ("engine.scene.gaussians", "LAZY_RGB_ONLY"),
+    "birth_stride": ("engine.train.births", "STRIDE"),
+    "birth_max": ("engine.train.births", "MAX_PER_FRAME"),
+    "traj_carry_hidden": ("engine.train.scene_flow", "CARRY_HIDDEN"),
+    "spike_flow_steps": ("engine.train.spike_flow_cache", "FLOW_STEPS"),
+    "spike_flow_upsample": ("engine.train.spike_flow_cache", "UPSAMPLE"),
+    "spike_flow_prefetch": ("engine.train.spike_flow_cache", "PREFETCH"),
+    "spike_flow_surface_every": ("engine.train.spike_flow", "SURFACE_EVERY"),
+    "spike_flow_min_px": ("engine.train.spike_flow", "MIN_PX"),
+    "quiet_curves_refresh": ("engine.train.quiet_curves", "REFRESH"),
+    "quiet_curves_dilate": ("engine.train.quiet_curves", "DILATE"),
+    "fine_encoder_every": ("engine.train.spike_guidance", "FINE_ENCODER_EVERY"),
+    "baseline_per_interval": ("engine.train.baselines", "PER_INTERVAL"),
+}
+
+
+def patch_constants(monkeypatch, over: dict) -> dict:
+    """Patch the constants that ``over`` names (old setting names, :data:`CONSTANTS`) with
+    ``monkeypatch`` and return the rest of ``over`` (real settings, for ``get_preset``)."""
+    import importlib
+
+    rest = {}
+    for k, v in over.items():
+        if k in CONSTANTS:
+            mod, name = CONSTANTS[k]
+            monkeypatch.setattr(importlib.import_module(mod), name, v)
+        else:
+            rest[k] = v
+    return rest

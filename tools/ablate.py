@@ -18,7 +18,6 @@ rgb-only       coarse DSR + L_frame (the RGB-only 4D Gaussians; Table 3 row 1)
 +spike         + spike rendering and L_spike (Table 3 row 3)
 full           + block colour loss: the BulletTime4D objective (Table 3 row 4)
 full-pg        full with per-Gaussian fine features (sampled at each projection)
-full+ray       full + the along-ray prior (issue 11, ``lambda_along_ray`` 1)
 rgb+repeat     RGB-only trained on repeated frames (Table 1 "Repeat")
 rgb+interp     RGB-only trained on flow-interpolated frames (Table 1 "Interpolate")
 rgb+spike2img  RGB-only trained on spike TFP images + Reinhard colour (Table 1)
@@ -51,7 +50,6 @@ VARIANTS: dict[str, tuple[bool, dict, str]] = {
     "full": (False, {"fine_deformation": True}, "full BulletTime4D"),
     "full-pg": (False, {"fine_deformation": True, "fine_per_gaussian": True},
                 "full, per-Gaussian fine features"),
-    "full+ray": (False, {"fine_deformation": True, "lambda_along_ray": 1.0}, "full + along-ray prior"),
     "full+block": (False, {"fine_deformation": True, "block_loss_weight": 1.0},
                    "full + the block colour loss (Eq. 20, off by default)"),
     "full-hexplane": (False, {"fine_deformation": True, "motion": "hexplane", "block_loss_weight": 1.0},
@@ -60,12 +58,12 @@ VARIANTS: dict[str, tuple[bool, dict, str]] = {
     "rgb+repeat": (True, {"baseline": "repeat"}, "RGB-only + Repeat"),
     "rgb+interp": (True, {"baseline": "interp-flow"}, "RGB-only + Interpolate (flow)"),
     # issue 11: the interpolated frames supervise only between the RGB instants (no knots, carries,
-    # births or stereo at their instants: baseline_instants="real"); full+interp also masks the pixels
-    # that fail the forward-backward flow check (README "Flow-interpolated frames in the full model")
+    # births or stereo at their instants: baseline_instants="real";
+    # docs/experiments/interpolated-frames-in-full-model.md)
     "rgb+interp-real": (True, {"baseline": "interp-flow", "baseline_instants": "real"},
                         "RGB-only + Interpolate (flow), knots at the RGB instants only"),
-    "full+interp": (False, {"fine_deformation": True, "baseline": "interp-flow", "baseline_instants": "real",
-                            "baseline_mask_px": 1.0}, "full + flow-interpolated frames between the RGB instants"),
+    "full+interp": (False, {"fine_deformation": True, "baseline": "interp-flow", "baseline_instants": "real"},
+                    "full + flow-interpolated frames between the RGB instants"),
     "rgb+spike2img": (True, {"baseline": "spike2img"}, "RGB-only + Spike2img + colour"),
 }
 

@@ -25,12 +25,11 @@ Design (documented here because the numbers depend on it):
   reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
   process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
 * Early stopping runs inside the trainer: its proxy is the PSNR on a few train frames held
-  back from training (``early_stop_proxy_frames``; never eval frames, so every eval figure
-  here is on views the run neither trained on nor stopped by), evaluated every
-  ``early_stop_every_fraction`` of the steps (its cost *is* counted in the wall time);
-  training stops after ``early_stop_patience`` proxy evaluations without a gain of
-  ``early_stop_min_delta`` dB, once the deformation stage has run for
-  ``early_stop_min_deform_fraction`` of its steps.
+  back from training (``engine.train.early_stop.PROXY_FRAMES``; never eval frames, so every
+  eval figure here is on views the run neither trained on nor stopped by), evaluated every
+  ``EVERY_FRACTION`` of the steps (its cost *is* counted in the wall time); training stops
+  after ``skip.early_stop_patience`` proxy evaluations without a gain of ``MIN_DELTA_DB``,
+  once the deformation stage has run for ``MIN_DEFORM_FRACTION`` of its steps.
 * Micro-benchmarks in the same run: rasterizer fast path (``cpu``) vs the dense
   ``reference`` and the plain-PyTorch tiled path (``engine.cli.bench_raster``'s scene and
   timer), and spike decoding ``read_spikes`` vs the community per-frame loader and the
@@ -71,9 +70,9 @@ from .micro import micro_decode, micro_freeze_step, micro_raster, warmup
 from .report import fmt
 
 VARIANTS = ("full", "rgb_only", "freeze", "early_stop", "cull")
-# the skip variants are switches of the trainer (engine.train.presets.TrainConfig, "skipping" block)
-VARIANT_OVERRIDES = {"freeze": {"freeze_static": True}, "early_stop": {"early_stop": True},
-                     "cull": {"cull_frustum": True}}
+# the skip variants are switches of the trainer (engine.train.config.TrainConfig, "skipping" block)
+VARIANT_OVERRIDES = {"freeze": {"skip.freeze_static": True}, "early_stop": {"skip.early_stop": True},
+                     "cull": {"skip.cull_frustum": True}}
 CSV_FIELDS = ("preset", "variant", "wall_s", "step", "total_steps", "psnr", "ssim", "num_gaussians")
 
 
@@ -190,17 +189,15 @@ def _variant_kwargs(variant: str) -> dict:
     return {"rgb_only": variant == "rgb_only"}
 
 
-def variant_overrides(variant: str, overrides: dict | None = None, proxy_frames: int | None = None) -> dict:
+def variant_overrides(variant: str, overrides: dict | None = None) -> dict:
     """``overrides`` plus the variant's skip switch (an explicit override wins)."""
     ov = dict(VARIANT_OVERRIDES.get(variant, {}))
-    if variant == "early_stop" and proxy_frames is not None:
-        ov["early_stop_proxy_frames"] = int(proxy_frames)
     ov.update(overrides or {})
     return ov
 
 
 def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float, eval_every_s: float,
-            eval_stride: int = 1, overrides: dict | None = None, seed: int = 0, proxy_frames: int = 4,
+            eval_stride: int = 1, overrides: dict | None = None, seed: int = 0,
             train_fn: Callable | None = None, evaluate_fn: Callable | None = None, flicker: bool = True,
             bar_factory=None, device=None) -> RunResult:
     """Train one (preset, variant) for ``seconds`` and sample its error curve (module doc)."""
@@ -212,7 +209,7 @@ def run_one(capture, out_dir: Path, preset: str, variant: str, *, seconds: float
     snaps = run_dir / "snapshots"
     snaps.mkdir(parents=True)
     _variant_kwargs(variant)  # rejects unknown variants before anything is written
-    ov = variant_overrides(variant, overrides, proxy_frames)
+    ov = variant_overrides(variant, overrides)
     ov["checkpoint_every_s"] = float(eval_every_s)
     cache = FrameCache()
     curve_frames = select_eval_frames(capture, eval_stride)

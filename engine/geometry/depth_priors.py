@@ -9,29 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from .planes import nearest_known_on_plane, static_planes
 from .planesweep import rgb_cameras
 from .stereo import StereoUnavailable, capture_fusion, pair_instants
 
 
-def plane_prior(view, depth: np.ndarray, ok: np.ndarray, planes):
-    """(depth, mask) [H, W]: ``depth``/``ok`` plus the pixels stereo left empty whose nearest
-    matched pixel lies on a dominant plane, at the plane's depth
-    (:func:`~.planes.nearest_known_on_plane`: the weakly textured floor between matched patches)."""
-    if not planes:
-        return depth, ok
-    pd, add = nearest_known_on_plane(view, depth, ok, planes)
-    return np.where(add, pd, depth).astype(np.float32), ok | add
-
-
-def fused_depth_priors(capture, frames, cameras: list[str], *, fusion=None, planes: bool = False) -> dict:
+def fused_depth_priors(capture, frames, cameras: list[str], *, fusion=None) -> dict:
     """Depth supervision for every frame of the pair: {id(frame): (depth [H,W], mask [H,W])}
     from :meth:`FusedDepth.instant_depth` (the instant's own stereo depth, else the static
-    depth where nothing moving covers the pixel); with ``planes``, also the dominant planes'
-    depth where stereo is empty and the plane agrees with the neighbours (:func:`plane_prior`).
-    ``fusion``: a precomputed (FusedDepth a, FusedDepth b, info). Raises :class:`StereoUnavailable`."""
+    depth where nothing moving covers the pixel). ``fusion``: a precomputed (FusedDepth a,
+    FusedDepth b, info). Raises :class:`StereoUnavailable`."""
     fa, fb, _ = fusion if fusion is not None else capture_fusion(capture, cameras, frames)
-    found = static_planes([fa, fb]) if planes else []
     out = {}
     for fused in (fa, fb):
         index = {round(float(t), 6): i for i, t in enumerate(fused.times)}
@@ -40,8 +27,6 @@ def fused_depth_priors(capture, frames, cameras: list[str], *, fusion=None, plan
             if f.camera == fused.camera and i is not None:
                 d, ok = fused.instant_depth(i)
                 d = np.nan_to_num(d, nan=0.0).astype(np.float32)
-                if found:
-                    d, ok = plane_prior(fused.view, d, ok, found)
                 out[id(f)] = (d, ok)
     return out
 
@@ -68,16 +53,14 @@ class FusionCache:
         return self._done[key]
 
 
-def stereo_depth_priors(capture, frames, *, min_pixels: int = 16, fusion_cache: FusionCache | None = None,
-                        planes: bool = False) -> dict:
+def stereo_depth_priors(capture, frames, *, min_pixels: int = 16, fusion_cache: FusionCache | None = None) -> dict:
     """Depth supervision of ``lambda_depth``: {id(frame): (depth [H,W] float32, mask [H,W] bool)}
     for the pair's frames with at least ``min_pixels`` known depths (:func:`fused_depth_priors`);
-    ``{"_unavailable": message}`` when the cameras are not a usable pair; ``planes``: see
-    :func:`fused_depth_priors`."""
+    ``{"_unavailable": message}`` when the cameras are not a usable pair."""
     try:
         cams = rgb_cameras(capture)
         fusion = fusion_cache(cams, frames) if fusion_cache is not None else None
-        priors = fused_depth_priors(capture, frames, cams, fusion=fusion, planes=planes)
+        priors = fused_depth_priors(capture, frames, cams, fusion=fusion)
     except StereoUnavailable as err:
         return {"_unavailable": str(err)}
     return {k: v for k, v in priors.items() if int(v[1].sum()) >= min_pixels}

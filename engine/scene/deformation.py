@@ -19,6 +19,7 @@ stage starts), t (capture seconds, continuous) to the capture's time range, both
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -28,7 +29,32 @@ from ..spike.features import SpikeWindowCache
 from . import hexplane_fused
 from .fine_deformation import SpikeFineEncoder
 
+
 # (a, b) coordinate indices of the six planes; 3 is time.
+@dataclass
+class HexPlaneConfig:
+    """The HexPlane deformation field's settings (the training configuration's ``hexplane`` group)."""
+
+    resolution: int = 24              # base spatial resolution of each plane axis
+    features: int = 16                # channels per plane
+    mlp_width: int = 64               # hidden width of the decoder phi_d
+    deform_scale: bool = False        # DynTCG: no scale deformation unless it pays
+    deform_opacity: bool = False
+    deform_color: bool = False
+    lr_grid: float = 5e-2             # decays to LR_GRID_FINAL
+    lr_mlp: float = 5e-3              # decays to LR_MLP_FINAL
+    time_smooth_weight: float = 1e-3  # second difference along t of the time planes (RGB-only)
+
+
+MULTIRES = (1, 2)             # resolution multipliers of the planes
+MLP_DEPTH = 1                 # hidden layers of phi_d
+TIME_CELLS_PER_FRAME = 1.0    # time cells per RGB instant (6 with spike guidance: TIME_CELLS_PER_FRAME_GUIDED)
+TIME_CELLS_PER_FRAME_GUIDED = 6.0
+LR_GRID_FINAL = 1.6e-3
+LR_MLP_FINAL = 1.6e-4
+TV_WEIGHT = 2e-4              # spatial plane total variation
+TIME_L1_WEIGHT = 1e-4         # time planes close to 1 (static by default)
+
 PLANES = ((0, 1), (0, 2), (1, 2), (0, 3), (1, 3), (2, 3))
 SPATIAL = (0, 1, 2)
 TEMPORAL = (3, 4, 5)
@@ -271,11 +297,11 @@ def time_resolution_for(frame_times, per_frame: float) -> int:
     return max(2, int(math.ceil(n * per_frame)) + 1)
 
 
-def make_field(cfg, bounds_min, bounds_max, time_range, frame_times, seed: int = 0) -> DeformationField:
-    """Build a field from a :class:`engine.train.presets.TrainConfig`."""
+def make_field(cfg: HexPlaneConfig, bounds_min, bounds_max, time_range, frame_times, seed: int = 0,
+               time_cells_per_frame: float = TIME_CELLS_PER_FRAME) -> DeformationField:
+    """Build a field from its settings (:class:`HexPlaneConfig`)."""
     return DeformationField(
-        bounds_min, bounds_max, time_range, features=cfg.hex_features, resolution=cfg.hex_resolution,
-        multires=tuple(cfg.hex_multires),
-        time_resolution=time_resolution_for(frame_times, cfg.time_resolution_per_frame),
-        width=cfg.mlp_width, depth=cfg.mlp_depth, deform_scale=cfg.deform_scale,
+        bounds_min, bounds_max, time_range, features=cfg.features, resolution=cfg.resolution,
+        multires=MULTIRES, time_resolution=time_resolution_for(frame_times, time_cells_per_frame),
+        width=cfg.mlp_width, depth=MLP_DEPTH, deform_scale=cfg.deform_scale,
         deform_opacity=cfg.deform_opacity, deform_color=cfg.deform_color, seed=seed)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import weakref
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -29,6 +30,32 @@ SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
          -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+@dataclass
+class GaussianConfig:
+    """The Gaussians' settings and their optimiser's (the training configuration's ``gaussians`` group)."""
+
+    sh_degree: int = 0                # final SH degree, grown one band per sh_step_fraction of the steps
+    sh_step_fraction: float = 0.15
+    lr_means: float = 1.6e-3          # x scene extent, decays exponentially to lr_means_final
+    lr_means_final: float = 1.6e-5
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh_dc: float = 2.5e-3          # the higher SH bands learn at SH_REST_LR_RATIO of it
+    init_opacity: float = 0.1
+    # exact (FusedAdam: torch's Adam bit for bit) | selective (only rows and curve columns a step
+    # touched) | lazy (the curves' touched columns, skipped steps caught up) | auto (lazy for long curves)
+    optimizer: str = "auto"
+
+
+SH_REST_LR_RATIO = 1 / 20   # 3DGS: the higher SH bands at 1/20 of the DC colour's lr
+# optimizer=auto: curves of at least this many control-point columns (K = 3 (F - 1) + 1 for F RGB
+# instants) take the lazy step (engine.scene.lazy_adam), shorter ones FusedAdam's ...
+LAZY_MIN_COLUMNS = 40
+# ... and every curve of a model whose renders are all at RGB instants (``instants_only``): its inner
+# columns are never read, so the lazy step with the read catch-up is dense Adam to rounding
+LAZY_RGB_ONLY = True
 
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -200,22 +227,22 @@ class GaussianModel(nn.Module):
     # steps every curve lazily (engine.scene.lazy_adam), whatever its length
     instants_only = False
 
-    def setup_optimizer(self, cfg, extent: float) -> None:
+    def setup_optimizer(self, cfg: GaussianConfig, extent: float) -> None:
         self.extent = float(extent)
         lrs = {"means": cfg.lr_means * self.extent, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
-               "opacity_logits": cfg.lr_opacities, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest}
+               "opacity_logits": cfg.lr_opacities, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_dc * SH_REST_LR_RATIO}
         groups = [{"params": [getattr(self, n)], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
         groups += [{"params": [getattr(self, n)], "lr": self._extra_lr(n), "name": n} for n in self.extra_lrs]
         # FusedAdam: torch's Adam bit for bit; SelectiveAdam: only the rows the step's renders
         # saw (and the curve columns they read) move (engine.scene.selective_adam)
         # LazyCurveAdam: the curves' touched columns only, their skipped steps caught up; "auto"
-        # for curves of at least lazy_min_columns columns (engine.scene.lazy_adam)
-        opt = getattr(cfg, "gaussian_adam", "exact")
+        # for curves of at least LAZY_MIN_COLUMNS columns (engine.scene.lazy_adam)
+        opt = cfg.optimizer
         if opt not in ("exact", "selective", "lazy", "auto"):
-            raise ValueError(f"unknown gaussian_adam {opt!r}; choose exact, selective, lazy or auto")
+            raise ValueError(f"unknown gaussians.optimizer {opt!r}; choose exact, selective, lazy or auto")
         if opt in ("lazy", "auto"):
-            least = int(getattr(cfg, "lazy_min_columns", 0)) if opt == "auto" else 0
-            below = least if self.instants_only and getattr(cfg, "lazy_rgb_only", False) else 0
+            least = int(LAZY_MIN_COLUMNS) if opt == "auto" else 0
+            below = least if self.instants_only and LAZY_RGB_ONLY else 0
             # below: the inner columns are never read, so lazy with read catch-up is dense Adam to rounding
             self.optimizer = LazyCurveAdam(groups, min_columns=0 if below else least, dense_inner_below=below,
                                            lr=0.0, eps=1e-15)

@@ -242,7 +242,7 @@ class Model4D(nn.Module):
 
     @classmethod
     def from_state(cls, state: dict, cfg=None, device="cpu") -> "Model4D":
-        """``cfg``: a ``TrainConfig`` to set up the Gaussians' optimiser (training), or None."""
+        """``cfg``: the Gaussians' settings (``GaussianConfig``) to set up their optimiser (training), or None."""
         g = GaussianModel.from_state(state["gaussians"], cfg, device=device)
         deform = None
         if state.get("deformation") is not None:

@@ -103,21 +103,15 @@ def resample_to(img: torch.Tensor, height: int, width: int, mode: str = "area") 
 
 
 def sensor_light(rgb_srgb: torch.Tensor, sensor: SensorModel, *, mode: str = "area",
-                 scale: torch.Tensor | float | None = None,
-                 box: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+                 scale: torch.Tensor | float | None = None) -> torch.Tensor:
     """Rendered sRGB image(s) [..., H, W, 3] at the co-located view -> light per spike
-    frame [..., h, w] at the spike resolution (Eq. 11-13).
-
-    ``box`` (x0, y0, x1, y1) in sensor pixels: the render shows only that part of the view
-    (engine.train.spike_crop); the light is [..., y1 - y0, x1 - x0] with the gain map's pixels
-    of the box."""
-    x0, y0, x1, y1 = (0, 0, sensor.width, sensor.height) if box is None else (int(v) for v in box)
-    y = resample_to(rgb_to_luma_linear(rgb_srgb), y1 - y0, x1 - x0, mode)
+    frame [..., h, w] at the spike resolution (Eq. 11-13)."""
+    y = resample_to(rgb_to_luma_linear(rgb_srgb), sensor.height, sensor.width, mode)
     s = sensor.scale if scale is None else scale
     light = y * s + sensor.dark_current
     g = sensor.gain_tensor(device=light.device, dtype=light.dtype)
     if g is not None:
-        light = light * (g if box is None else g[y0:y1, x0:x1])
+        light = light * g
     return light.clamp(max=float(sensor.threshold))
 
 
@@ -212,8 +206,7 @@ class SpikeRenderer(torch.nn.Module):
     """Holds the sensor model; renders spike counts for a rendered co-located image.
 
     ``render_counts(img, num_frames)`` -> expected counts [.., h, w] (default path);
-    ``render_spikes(img, m)`` -> IF spikes [m, .., h, w] with surrogate gradients;
-    ``box``: the render is that part of the view (:func:`sensor_light`).
+    ``render_spikes(img, m)`` -> IF spikes [m, .., h, w] with surrogate gradients.
     """
 
     def __init__(self, sensor: SensorModel, *, mode: str = "area", learn_scale: bool = False):
@@ -222,15 +215,15 @@ class SpikeRenderer(torch.nn.Module):
         self.mode = mode
         self.log_scale_correction = torch.nn.Parameter(torch.zeros(()), requires_grad=learn_scale)
 
-    def light(self, img_srgb: torch.Tensor, box=None) -> torch.Tensor:
+    def light(self, img_srgb: torch.Tensor) -> torch.Tensor:
         scale = self.sensor.scale * torch.exp(self.log_scale_correction.to(img_srgb.device))
-        return sensor_light(img_srgb, self.sensor, mode=self.mode, scale=scale, box=box)
+        return sensor_light(img_srgb, self.sensor, mode=self.mode, scale=scale)
 
-    def render_counts(self, img_srgb: torch.Tensor, num_frames: float, box=None) -> torch.Tensor:
-        return expected_counts(self.light(img_srgb, box), num_frames, self.sensor.threshold)
+    def render_counts(self, img_srgb: torch.Tensor, num_frames: float) -> torch.Tensor:
+        return expected_counts(self.light(img_srgb), num_frames, self.sensor.threshold)
 
-    def render_spikes(self, img_srgb: torch.Tensor, m: int = 32, box=None, **kw) -> torch.Tensor:
-        return integrate_and_fire(self.light(img_srgb, box), m, self.sensor.threshold, **kw)
+    def render_spikes(self, img_srgb: torch.Tensor, m: int = 32, **kw) -> torch.Tensor:
+        return integrate_and_fire(self.light(img_srgb), m, self.sensor.threshold, **kw)
 
 
 # ----------------------------------------------------------------------------- estimation

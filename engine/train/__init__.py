@@ -4,7 +4,7 @@ spike guidance, freezing, early stop, culling and the two-stage baselines.
 May import: every package below it (foundations, io, raster, spike, scene, geometry,
 evaluate). Nothing below imports training.
 """
-from .presets import TrainConfig, get_preset
+from .config import TrainConfig, get_preset
 from .run import train
 
 __all__ = ["TrainConfig", "get_preset", "train"]

@@ -149,7 +149,10 @@ def _pairs(frames):
     return list(zip(frames[:-1], frames[1:]))
 
 
-def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, sensor=None,
+PER_INTERVAL = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
+
+
+def baseline_frames(capture, kind: str, *, per_interval: int | None = None, cameras=None, sensor=None,
                     spike_method: str = "tfp", colour: str = "reinhard", window: int = 64,
                     mask_px: float = 0.0, knots: bool = True) -> list[SyntheticFrame]:
     """Synthetic in-between frames for the baseline ``kind`` (see :data:`KINDS`).
@@ -162,6 +165,7 @@ def baseline_frames(capture, kind: str, *, per_interval: int = 9, cameras=None, 
     False: the frames' ``knot`` is False (their instants are not RGB instants)."""
     if kind not in KINDS:
         raise ValueError(f"unknown baseline {kind!r}; choose from {', '.join(KINDS)}")
+    per_interval = PER_INTERVAL if per_interval is None else int(per_interval)
     if mask_px < 0:
         raise ValueError(f"baseline mask_px must be >= 0 (got {mask_px})")
     by_cam: dict[str, list] = {}
@@ -223,7 +227,7 @@ INSTANTS = ("all", "real")
 
 def with_baseline(capture, kind: str | None, *, instants: str = "all", **kw):
     """A copy of ``capture`` whose ``frames`` also hold the baseline's synthetic frames
-    (``kind`` None: the capture itself). ``instants`` (TrainConfig.baseline_instants): "all"
+    (``kind`` None: the capture itself). ``instants`` (the ``baseline.instants`` setting): "all"
     -- their instants are RGB instants too (paper Table 1: trained on as if real); "real" --
     they are not (``knot`` False): only the frame loss sees them."""
     if not kind:

@@ -19,7 +19,7 @@ where the carry cannot follow a fast object, the object between ``T_{j-1}`` and 
 the cross-fade of the two instants' motionless copies (fast scene, eval camera, run of main
 6151c93: born Gaussians give 0.55 of the moving pixels' alpha; moving-pixel PSNR between
 frames 16.25 dB, 13.76 with their fade removed, 13.43 with them removed:
-``scripts/birth_share.py``). With ``birth_motion`` each born Gaussian gets its junctions at
+a one-off study, docs/experiments/ (births)). With ``birth_motion`` each born Gaussian gets its junctions at
 ``T_{j-1}`` (held before) and ``T_{j+1}`` (held after; the carry then leaves it alone) from
 :func:`backward_displacement`: the train cameras' correspondence ``T_j -> T_{j+-1}`` lifted by
 the stereo depth there (the carry's :func:`carry_by_flow`): ``"lk"`` / ``"dis"`` optical flow,
@@ -46,6 +46,7 @@ import torch
 
 from ..scene.gaussians import inverse_sigmoid, rgb_to_sh
 from ..scene.model import ALWAYS_LOG_SCALE, TIME_CENTER, TIME_LOG_SCALE, TRAJ_MEANS, temporal_opacity, view_tensors
+from . import scene_flow
 from .scene_flow import (
     backproject_pixels,
     carry_by_flow,
@@ -58,6 +59,10 @@ from .scene_flow import (
 __all__ = ["ALWAYS_LOG_SCALE", "BIRTH_MOTIONS", "birth_candidates", "unchanged_pixels", "stereo_in_front",
            "ensure_temporal_opacity", "spawn_at_instant", "backward_displacement", "component_flow", "move_born"]
 
+STRIDE = 2              # px between candidate pixels
+MAX_PER_FRAME = 2000    # most Gaussians born per admitted frame
+OPACITY = 0.5           # a born Gaussian's peak opacity
+MATCH_RADIUS = 0.25     # x image width: search radius of births.motion=match
 BIRTH_MOTIONS = ("none", "lk", "dis", "match", "nearest")  # lk / dis: scene_flow.image_flow; match: component_flow
 
 LR_TIME_CENTER = 5e-4    # s per step: a born Gaussian's centre can drift a few frames in 100 steps
@@ -112,15 +117,15 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     record ``{"birth_at", "born", "total"}``, also appended to ``trainer.birth_info`` (run.json's
     ``births``)."""
     cfg, model = trainer.cfg, trainer.model
-    if cfg.birth_motion not in BIRTH_MOTIONS:  # before the model changes
-        raise ValueError(f"unknown birth_motion {cfg.birth_motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
+    if cfg.births.motion not in BIRTH_MOTIONS:  # before the model changes
+        raise ValueError(f"unknown birth_motion {cfg.births.motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
     g = model.gaussians
     pri = instant_depth_priors(trainer, frames)
     knots = model.trajectory["knots"]  # births follow the carry, which only curves have
     dt = float(np.median(np.diff(knots))) if len(knots) > 1 else 1.0 / 30.0
     rng = np.random.default_rng(int(trainer.seed) * 7919 + int(round(t * 1e6)))
-    static_life = float(getattr(cfg, "birth_static_lifespan", 0.0))
-    guard = float(getattr(cfg, "birth_depth_guard", 0.0))
+    static_life = float(cfg.births.static_lifespan)
+    guard = float(cfg.births.depth_guard)
     find_static = static_life > 0 or guard > 0
     by_key = {(f.camera, round(float(f.time), 9)): f for f in frames} if find_static else {}
     j = int(np.argmin([abs(k - t) for k in knots])) if len(knots) else 0
@@ -135,12 +140,12 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
         rgb = rgb[0].clamp(0, 1).cpu().numpy()
         img = frame_image(trainer, f)
         depth, ok = pri[id(f)]
-        r, c = birth_candidates(rgb, img, depth, ok, cfg.birth_error, int(cfg.birth_stride), int(cfg.birth_max), rng)
+        r, c = birth_candidates(rgb, img, depth, ok, cfg.births.error, int(STRIDE), int(MAX_PER_FRAME), rng)
         if find_static and len(r):
             nbrs = [frame_image(trainer, by_key[k]) for k in
                     ((f.camera, round(float(knots[i]), 9)) for i in (j - 1, j + 1) if 0 <= i < len(knots))
                     if k in by_key]
-            unchanged = unchanged_pixels(img, nbrs, r, c, cfg.birth_error)
+            unchanged = unchanged_pixels(img, nbrs, r, c, cfg.births.error)
             if guard > 0:
                 keep = ~(unchanged & stereo_in_front(depth[r, c], meta["depths"][0, ..., 0].cpu().numpy()[r, c],
                                                      alpha[0, ..., 0].cpu().numpy()[r, c], guard))
@@ -152,7 +157,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
         z = depth[r, c].astype(np.float64)
         pts.append(backproject_pixels(view, np.stack([c + 0.5, r + 0.5], 1), z))
         cols.append(img[r, c])
-        sizes.append(z / view.intrinsics.fx * cfg.birth_stride * 0.5)  # half the grid step, in metres
+        sizes.append(z / view.intrinsics.fx * STRIDE * 0.5)  # half the grid step, in metres
     records = trainer.__dict__.setdefault("birth_info", [])
     if not pts:
         records.append({"birth_at": float(t), "born": 0, "total": g.num_gaussians})
@@ -163,7 +168,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     dev = g.means.device
     means = torch.as_tensor(np.concatenate(pts), dtype=torch.float32, device=dev)
     m = means.shape[0]
-    life = np.full(m, float(cfg.birth_lifespan))
+    life = np.full(m, float(cfg.births.lifespan))
     if static_life > 0:
         life[np.concatenate(still)] = static_life
     quats = torch.zeros(m, 4, device=dev)
@@ -174,7 +179,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
         "log_scales": torch.log(torch.as_tensor(np.concatenate(sizes), dtype=torch.float32, device=dev)
                                 .clamp_min(1e-6))[:, None].repeat(1, 3),
         "quats": quats,
-        "opacity_logits": inverse_sigmoid(torch.full((m,), float(cfg.birth_opacity), device=dev)),
+        "opacity_logits": inverse_sigmoid(torch.full((m,), float(OPACITY), device=dev)),
         "sh_dc": rgb_to_sh(torch.as_tensor(np.concatenate(cols), dtype=torch.float32, device=dev))[:, None, :],
         TIME_CENTER: torch.full((m, 1), float(t), device=dev),
         TIME_LOG_SCALE: torch.as_tensor(np.log(np.maximum(life * dt, 1e-6)), dtype=torch.float32,
@@ -188,7 +193,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
         records[-1]["static"] = int((life == static_life).sum())
     if guard > 0:
         records[-1]["guarded"] = guarded
-    if cfg.birth_motion != "none":
+    if cfg.births.motion != "none":
         records[-1].update(move_born(trainer, frames, knots, t, g.num_gaussians - m))
     return records[-1]
 
@@ -275,7 +280,7 @@ def move_born(trainer, frames, knots, t: float, first: int) -> dict:
     cfg, model = trainer.cfg, trainer.model
     g = model.gaussians
     tm = getattr(g, TRAJ_MEANS).data
-    pri = instant_depth_priors(trainer, frames) if cfg.birth_motion != "nearest" else {}
+    pri = instant_depth_priors(trainer, frames) if cfg.births.motion != "nearest" else {}
     by_cam: dict = {}
     for f in frames:
         by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
@@ -295,14 +300,14 @@ def move_born(trainer, frames, knots, t: float, first: int) -> dict:
             if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
                 continue
             img_a, img_b, view = frame_image(trainer, fa), frame_image(trainer, fb), trainer.capture.view(fa)
-            if cfg.birth_motion == "match":
-                mask = _born_mask(view, at_j[first:], img_a.shape[:2], int(cfg.birth_stride))
-                flow = component_flow(img_a, img_b, mask, int(round(cfg.birth_match_radius * img_a.shape[1])))
+            if cfg.births.motion == "match":
+                mask = _born_mask(view, at_j[first:], img_a.shape[:2], int(STRIDE))
+                flow = component_flow(img_a, img_b, mask, int(round(MATCH_RADIUS * img_a.shape[1])))
             else:
-                flow = image_flow(img_a, img_b, cfg.birth_motion)
+                flow = image_flow(img_a, img_b, cfg.births.motion)
             cams.append((view, flow, *pri[id(fa)], *pri[id(fb)]))
         delta, decided, n_flow = backward_displacement(
-            at_j[first:], cams, at_j[alive], (at_i - at_j)[alive], cfg.traj_carry_hidden * trainer.extent)
+            at_j[first:], cams, at_j[alive], (at_i - at_j)[alive], scene_flow.CARRY_HIDDEN * trainer.extent)
         idx = torch.from_numpy(first + np.nonzero(decided)[0]).to(tm.device)
         d = torch.from_numpy(delta[decided]).to(tm)
         for k in (range(i + 1) if i < j else range(i, len(knots))):

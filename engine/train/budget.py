@@ -27,10 +27,10 @@ from ..scene.hexplane_fused import warmup as hexplane_warmup
 from ..scene.lazy_adam import warmup as lazy_warmup
 from ..scene.selective_adam import warmup as selective_warmup
 from ..scene.trajectory import warmup as trajectory_warmup
+from .config import TrainConfig
 from .fused_ssim import warmup as ssim_warmup
 from .interpolation import warmup as flow_warmup
 from .nearest import warmup as nearest_warmup
-from .presets import TrainConfig
 from .quiet_curves import warmup as quiet_warmup
 
 __all__ = ["DEFORM_REESTIMATE_EVERY", "END_RESERVE_S", "REESTIMATE_FRACTION", "measure_step_seconds", "reestimate_at",
@@ -42,7 +42,7 @@ def measure_step_seconds(trainer, n_static: int = 4, n_deform: int = 4) -> tuple
     probe = copy.copy(trainer)
     probe.model = copy.deepcopy(trainer.model)
     vars(probe.model.gaussians).pop("_replace", None)  # the freezer's watch belongs to the real model
-    probe.model.gaussians.setup_optimizer(trainer.cfg, trainer.extent)
+    probe.model.gaussians.setup_optimizer(trainer.cfg.gaussians, trainer.extent)
     probe.deform_opt = None
     probe.freeze = probe.early_stop = probe.cull = None
     probe.total_steps = 10 ** 6
@@ -70,11 +70,11 @@ def _probe_times(probe, trainer, n_static: int, n_deform: int) -> dict:
     times = {}
     for stage, n in (("static", n_static), ("deform", n_deform)):
         probe.cfg = copy.copy(trainer.cfg)
-        probe.cfg.static_fraction = 1.0 if stage == "static" else 0.0
+        probe.cfg.schedule.static_fraction = 1.0 if stage == "static" else 0.0
         # the whole capture time admitted: a step at the curriculum's start would skip the
         # spike branch's in-between render (engine.train.instants), and under-price every later step
-        probe.cfg.time_curriculum = 0.0
-        probe.cfg.densify_from = probe.cfg.densify_until = 2.0  # no densification in the probe
+        probe.cfg.schedule.time_curriculum = 0.0
+        probe.cfg.densify.start = probe.cfg.densify.stop = 2.0  # no densification in the probe
         times[stage] = []
         for i in range(n):
             t0 = time.perf_counter()
@@ -86,7 +86,7 @@ def _probe_times(probe, trainer, n_static: int, n_deform: int) -> dict:
 def steps_for_budget(seconds: float, t_static: float, t_deform: float, cfg: TrainConfig,
                      growth: float = 1.5, reserve_s: float = 0.0) -> int:
     """Steps that fit in ``seconds`` given per-step costs (Gaussian growth factored in)."""
-    per = (cfg.static_fraction * t_static + (1 - cfg.static_fraction) * t_deform) * growth
+    per = (cfg.schedule.static_fraction * t_static + (1 - cfg.schedule.static_fraction) * t_deform) * growth
     n = max(20, int((max(0.0, seconds - reserve_s)) / max(per, 1e-4)))
     cap = step_cap(cfg)
     return n if cap is None else min(n, cap)
@@ -97,8 +97,8 @@ def step_cap(cfg: TrainConfig) -> int | None:
     (cap 0). Past it more steps cost the novel views: fast preset, 120 s budgets ran 2700-7300 steps and
     2000 fixed steps scored higher at the eval cameras on 5 of 6 scene x model pairs (README, "eq16");
     a run the cap binds ends before its budget."""
-    f = float(getattr(cfg, "budget_step_cap", 0.0) or 0.0)
-    return max(20, int(round(f * int(cfg.iterations)))) if f > 0 else None
+    f = float(cfg.schedule.step_cap or 0.0)
+    return max(20, int(round(f * int(cfg.schedule.iterations)))) if f > 0 else None
 
 
 REESTIMATE_FRACTION = 0.05  # re-estimate the budget's step count after this share of the probe's estimate
@@ -122,7 +122,7 @@ def reestimate_steps(trainer, done: int, step_seconds: float, probe: dict, loop_
     scale = step_seconds / max(probe["static_step_s"], 1e-9)
     rec = {"at_step": int(done), "static_step_s": round(step_seconds, 5),
            "deform_step_s": round(probe["deform_step_s"] * scale, 5), "total_steps": old}
-    if cfg.static_fraction <= 0 or done >= trainer.static_steps:
+    if cfg.schedule.static_fraction <= 0 or done >= trainer.static_steps:
         rec["skipped"] = "the deformation stage has started (it re-plans from its own rate)"
         return rec
     new = steps_for_budget(loop_seconds, step_seconds, probe["deform_step_s"] * scale, cfg)

@@ -1,5 +1,5 @@
 """Frustum culling: prune Gaussians that no train camera sees (the ``cull_frustum`` switch
-of :class:`engine.train.presets.TrainConfig`)."""
+of :class:`engine.train.config.TrainConfig`)."""
 from __future__ import annotations
 
 import numpy as np

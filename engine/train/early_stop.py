@@ -1,5 +1,5 @@
 """Early stop: end a run when the PSNR on a few train frames held back from training stops
-improving (the ``early_stop`` switch of :class:`engine.train.presets.TrainConfig`); never
+improving (the ``early_stop`` switch of :class:`engine.train.config.TrainConfig`); never
 the eval frames, which are the test views every reported metric is computed on."""
 from __future__ import annotations
 
@@ -15,13 +15,22 @@ from ..scene.model import Model4D, view_tensors
 __all__ = ["EarlyStop", "hold_back_frames"]
 
 
-def hold_back_frames(frames: list, n: int) -> tuple[list, list]:
+# the early-stopping proxy: how many train frames are held back, how often it is scored, what counts
+# as a gain and how early it may stop (docs/experiments/stress-and-skipping.md)
+PROXY_FRAMES = 4
+EVERY_FRACTION = 0.05            # a proxy evaluation every this share of the steps
+MIN_DELTA_DB = 0.05              # a smaller gain is no gain
+MIN_DEFORM_FRACTION = 0.25       # never stop before this share of the deformation stage
+
+
+def hold_back_frames(frames: list, n: int | None = None) -> tuple[list, list]:
     """(kept, held): up to ``n`` train frames held back from training as the early-stopping
     proxy. Only an instant that two or more train cameras see gives up one frame (the other
     cameras still train that instant, so no motion goes unseen and the proxy measures a
     view no camera trained on at that instant); the first instant is spared when another
     one is eligible (the static stage fits the canonical scene to it). The chosen instants
-    are spread evenly over the eligible ones and take the cameras in turn."""
+    are spread evenly over the eligible ones and take the cameras in turn. ``n``: PROXY_FRAMES."""
+    n = PROXY_FRAMES if n is None else n
     by_t: dict[float, list] = {}
     for f in frames:
         by_t.setdefault(round(float(f.time), 9), []).append(f)
@@ -42,7 +51,7 @@ def hold_back_frames(frames: list, n: int) -> tuple[list, list]:
 class EarlyStop:
     """Stop when the PSNR on a few held-back train frames (the *proxy*) stops improving.
 
-    The proxy is ``early_stop_proxy_frames`` train frames that the trainer holds back from
+    The proxy is ``PROXY_FRAMES`` train frames that the trainer holds back from
     training (:func:`hold_back_frames`: one camera's frame at instants that another train
     camera also sees), never the capture's eval frames, which are the test views every
     reported metric is computed on (``source == "held_back_train"``, named in run.json's
@@ -85,9 +94,8 @@ class EarlyStop:
             names.append(f"train:{f.camera}@{float(f.time):.6f}")
         if not frames:
             return None
-        return cls(frames, names, cls.SOURCE, patience=cfg.early_stop_patience, min_delta=cfg.early_stop_min_delta,
-                   every_fraction=cfg.early_stop_every_fraction,
-                   min_deform_fraction=cfg.early_stop_min_deform_fraction)
+        return cls(frames, names, cls.SOURCE, patience=cfg.skip.early_stop_patience, min_delta=MIN_DELTA_DB,
+                   every_fraction=EVERY_FRACTION, min_deform_fraction=MIN_DEFORM_FRACTION)
 
     def every(self, total_steps: int) -> int:
         return max(1, int(self.every_fraction * total_steps))
@@ -111,7 +119,7 @@ class EarlyStop:
             return False
         total = trainer.total_steps
         self._next = done + self.every(total)
-        deform_done = trainer.schedule.deform_progress(done, trainer.cfg.static_fraction)
+        deform_done = trainer.schedule.deform_progress(done, trainer.cfg.schedule.static_fraction)
         t0 = time.perf_counter()
         score = self.score(trainer.model)
         self.eval_seconds += time.perf_counter() - t0

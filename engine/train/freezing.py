@@ -310,6 +310,12 @@ def abrupt_mask(current: torch.Tensor, history: list, threshold: float) -> torch
 
 # ----------------------------------------------------------------------------- trainer side
 
+# the observation module wakes a frozen Gaussian under a larger residual; the motion checks are spread
+# over the deformation stage, the first after START_FRACTION of it
+WAKE_RESIDUAL = 0.15
+CHECKS_PER_STAGE = 20
+START_FRACTION = 0.3
+
 class TrainFreezer:
     """The freezing switch of :mod:`engine.train.trainer` (``TrainConfig.freeze_static``): a
     :class:`Freezer` run by the trainer it belongs to, in the deformation stage.
@@ -358,9 +364,8 @@ class TrainFreezer:
 
     @classmethod
     def from_config(cls, trainer, cfg) -> "TrainFreezer":
-        return cls(trainer, k_checks=cfg.freeze_k_checks, motion_eps_px=cfg.freeze_motion_eps_px,
-                   wake_residual=cfg.freeze_wake_residual, checks_per_stage=cfg.freeze_checks_per_stage,
-                   start_fraction=cfg.freeze_start_fraction)
+        return cls(trainer, k_checks=cfg.skip.freeze_k_checks, motion_eps_px=cfg.skip.freeze_motion_eps_px,
+                   wake_residual=WAKE_RESIDUAL, checks_per_stage=CHECKS_PER_STAGE, start_fraction=START_FRACTION)
 
     # -------------------------------------------------------------- bookkeeping
     def _active(self) -> bool:
@@ -407,7 +412,7 @@ class TrainFreezer:
     def schedule(self) -> tuple[int, int]:
         """(first check, steps between checks) in the trainer's virtual steps (engine.train.schedule)."""
         tr = self.trainer
-        s0 = tr.schedule.static_end(tr.cfg.static_fraction)
+        s0 = tr.schedule.static_end(tr.cfg.schedule.static_fraction)
         deform_steps = max(1, tr.schedule.nominal - s0)
         start = s0 + int(self.start_fraction * deform_steps)
         every = self.check_every or max(1, deform_steps // self.checks_per_stage)

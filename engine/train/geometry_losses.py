@@ -1,37 +1,26 @@
 """Training terms that keep geometry consistent across the two train views (issue 14, item 3).
 
-Each is a :class:`engine.presets.TrainConfig` switch, off by default unless README's
-measurement says it pays:
+Each is a switch of the training configuration's ``losses`` group (binocular consistency,
+depth smoothness and a random background were measured and dropped:
+docs/experiments/two-view-geometry.md):
 
-* ``lambda_binocular`` -- binocular consistency (after "Binocular-guided 3D Gaussian
-  Splatting with view consistency for sparse view synthesis", Han et al., NeurIPS 2024,
-  Eq. 4-6): the depth rendered at train view A carries the partner camera B's image (same
-  instant) into A; the L1 between that warped image and A's own image trains A's depth. A
-  wrong depth fetches the wrong colour; textured surfaces therefore pull Gaussians onto the
-  surface both views agree on, which one view's photometric loss alone cannot.
-* ``lambda_depth_smooth`` -- edge-aware smoothness of the rendered depth (Godard et al. 2017):
-  ``|d/dx D| exp(-gamma |d/dx I|)``, on depth divided by its mean: flat image areas (a
-  weakly textured floor) get smooth depth, image edges may carry depth edges.
 * ``opacity_decay`` -- each step, the opacity of the Gaussians the step's view sees is
   multiplied by this factor (Binocular-guided 3DGS, Sec. 3.3, 0.995): Gaussians that the
   photometric loss keeps needing recover, floaters that only one view supports fade and are
   pruned by the usual ``prune_opacity`` rule. Gaussians outside the rendered view are left
   alone (so the backdrop beyond every train frustum keeps its opacity).
-* ``lambda_cover`` -- no cracks at a nearby new viewpoint: every ``cover_every`` steps the
-  step's frame is rendered again (``cover_scale`` x its resolution, same instant) from a
-  virtual camera turned by ``cover_angle_deg`` x U(0.5, 1) about the point the view looks at
+* ``losses.cover`` -- no cracks at a nearby new viewpoint: every ``COVER_EVERY`` steps the
+  step's frame is rendered again (``COVER_SCALE`` x its resolution, same instant) from a
+  virtual camera turned by ``COVER_ANGLE_DEG`` x U(0.5, 1) about the point the view looks at
   (its median rendered depth on the optical axis), about a random axis in the image plane;
   the mean of ``1 - alpha`` over the pixels inside the render's covered region (a
-  morphological closing of ``alpha > 0.5`` with a box ``cover_kernel_frac`` x the render's
+  morphological closing of ``alpha > 0.5`` with a box ``COVER_KERNEL_FRAC`` x the render's
   shorter side wide: the cracks between splats, not the empty space around the scene),
   restricted to the pixels the step's own view sees (``seen_from``, at the orbit's pivot
   depth), is the loss; only the Gaussians the step's own render draws get its gradient
   (``Model4D.render(grad_rows=...)``), and only their ``cover_grad`` attributes. A floor seen at a grazing angle
   by both train cameras is made of blobs that leave gaps 20 deg above it (README "More
   steps, worse novel views"); the photometric loss never sees those gaps.
-* ``random_background`` -- each step composites over a random colour instead of the black
-  training background, so a transparent hole can never pass for dark scene content.
-
 Functions take and return tensors with documented shapes; the trainer calls
 :func:`geometry_loss_terms` (loss list) and :func:`geometry_post_step_hooks`.
 """
@@ -45,7 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from ..scene.model import scaled_view
-from .presets import opacity_decay_window
+from .config import opacity_decay_window
 
 
 def pixel_grid(height: int, width: int, device=None) -> torch.Tensor:
@@ -72,52 +61,6 @@ def project_into(depth_a: torch.Tensor, K_a: torch.Tensor, viewmat_a: torch.Tens
     return K_b[0, 0] * q[..., 0] / zs + K_b[0, 2], K_b[1, 1] * q[..., 1] / zs + K_b[1, 2], z
 
 
-def warp_into(depth_a: torch.Tensor, K_a: torch.Tensor, viewmat_a: torch.Tensor, image_b: torch.Tensor,
-              K_b: torch.Tensor, viewmat_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Image b seen through view a's depth.
-
-    depth_a [H,W] planar depth of view a; K [3,3]; viewmat [4,4] OpenCV world-to-camera;
-    image_b [Hb,Wb,C]. Returns (warped [H,W,C], valid [H,W] bool: in front of b, inside b's
-    image, depth > 0). Differentiable in ``depth_a`` (bilinear sampling of b).
-    """
-    ub, vb, z = project_into(depth_a, K_a, viewmat_a, K_b, viewmat_b)
-    Hb, Wb = image_b.shape[:2]
-    grid = torch.stack([ub / Wb * 2 - 1, vb / Hb * 2 - 1], -1)[None]
-    warped = F.grid_sample(image_b.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border",
-                           align_corners=False)[0].permute(1, 2, 0)
-    valid = (z > 1e-6) & (depth_a > 0) & (ub >= 0.5) & (ub <= Wb - 0.5) & (vb >= 0.5) & (vb <= Hb - 0.5)
-    return warped, valid
-
-
-def binocular_loss(depth_a, alpha_a, image_a, K_a, viewmat_a, image_b, K_b, viewmat_b, *,
-                   min_alpha: float = 0.5) -> torch.Tensor | None:
-    """Mean L1 between view a's image and view b's image warped into a through a's rendered
-    depth, over pixels that are covered (alpha > ``min_alpha``) and land inside b.
-    depth_a/alpha_a [H,W]; images [H,W,3]. None when no pixel qualifies."""
-    warped, valid = warp_into(depth_a, K_a, viewmat_a, image_b, K_b, viewmat_b)
-    m = valid & (alpha_a.detach() > min_alpha)
-    if int(m.sum()) < 16:
-        return None
-    return (warped - image_a).abs().mean(-1)[m].mean()
-
-
-def edge_aware_smoothness(depth: torch.Tensor, alpha: torch.Tensor, image: torch.Tensor, *, gamma: float = 10.0,
-                          min_alpha: float = 0.5) -> torch.Tensor | None:
-    """Edge-aware first-order smoothness of ``depth`` [H,W] (divided by its mean where
-    ``alpha`` [H,W] > ``min_alpha``), weighted by ``exp(-gamma |grad image|)`` (image [H,W,3])."""
-    m = alpha.detach() > min_alpha
-    if int(m.sum()) < 16:
-        return None
-    d = depth / depth.detach()[m].mean().clamp_min(1e-6)
-    gx = (image[:, 1:] - image[:, :-1]).abs().mean(-1)
-    gy = (image[1:] - image[:-1]).abs().mean(-1)
-    dx = (d[:, 1:] - d[:, :-1]).abs() * torch.exp(-gamma * gx)
-    dy = (d[1:] - d[:-1]).abs() * torch.exp(-gamma * gy)
-    mx, my = m[:, 1:] & m[:, :-1], m[1:] & m[:-1]
-    return (dx[mx].sum() + dy[my].sum()) / (mx.sum() + my.sum()).clamp_min(1)
-
-
-@torch.no_grad()
 def decay_visible_opacity(opacity_logits: torch.Tensor, visible: torch.Tensor, factor: float) -> None:
     """In place: opacity <- factor * opacity for the ``visible`` [N] Gaussians (logits [N] or [N,1])."""
     o = torch.sigmoid(opacity_logits[visible]) * factor
@@ -125,40 +68,6 @@ def decay_visible_opacity(opacity_logits: torch.Tensor, visible: torch.Tensor, f
 
 
 # ---------------------------------------------------------------------------------- trainer glue
-def partner_index(items: list[dict]) -> dict[int, int]:
-    """For each train item, the item of another camera at the same instant (the stereo partner)."""
-    by_time: dict = {}
-    for i, it in enumerate(items):
-        by_time.setdefault(round(float(it["time"]), 6), []).append(i)
-    out = {}
-    for group in by_time.values():
-        for i in group:
-            others = [j for j in group if items[j]["camera"] != items[i]["camera"]]
-            if others:
-                out[i] = others[0]
-    return out
-
-
-def _binocular(ctx):
-    tr = ctx.trainer
-    if getattr(tr, "_partners", None) is None:
-        tr._partners = partner_index(tr.items)
-    j = tr._partners.get(ctx.item["index"])
-    depth = ctx.meta.get("depths")
-    if j is None or depth is None:
-        return None
-    a, b = ctx.item, tr.items[j]
-    return binocular_loss(depth[0, ..., 0], ctx.alpha[0, ..., 0], a["image"][0], a["K"][0], a["viewmat"][0],
-                          b["image"][0], b["K"][0], b["viewmat"][0])
-
-
-def _depth_smooth(ctx):
-    depth = ctx.meta.get("depths")
-    if depth is None:
-        return None
-    return edge_aware_smoothness(depth[0, ..., 0], ctx.alpha[0, ..., 0], ctx.item["image"][0])
-
-
 def orbit_view(vt: dict, pivot_depth: float, axis_angle: float, angle_rad: float, scale: float = 1.0) -> dict:
     """A view dict (``view_tensors`` keys; viewmat world->camera [1,4,4], OpenCV axes) whose
     camera is turned by ``angle_rad`` about the point ``pivot_depth`` ahead on its optical
@@ -184,7 +93,7 @@ def orbit_view(vt: dict, pivot_depth: float, axis_angle: float, angle_rad: float
 def cover_kernel_px(fraction: float, height: int, width: int) -> int:
     """Side (odd, >= 3 px) of :func:`crack_mask`'s closing box for a ``height`` x ``width``
     render: ``fraction`` of its shorter side, so the box spans the same part of the view at any
-    resolution (a 1080x720 capture renders 540x360 at ``cover_scale`` 0.5, where the 9 px of the
+    resolution (a 1080x720 capture renders 540x360 at ``COVER_SCALE`` 0.5, where the 9 px of the
     test scenes' 80x60 renders would close only cracks a fifth as wide). 0.125 keeps the 9 px
     measured on those scenes (80x60 and 96x72 renders); at 320x240 (160x120 renders) 9, 15 and
     19 px scored within 0.3 dB of each other, without a trend (README)."""
@@ -238,9 +147,20 @@ def cover_loss(alpha: torch.Tensor, kernel: int, eligible: torch.Tensor | None =
     return ((1.0 - alpha) * inside).sum() / alpha.numel()
 
 
+# the cover term: a virtual render every COVER_EVERY steps (4 against 2: a cheaper step, no loss),
+# COVER_ANGLE_DEG x U(0.5, 1) off the step's frame at COVER_SCALE x its resolution; the closing box
+# that tells cracks from the outline is COVER_KERNEL_FRAC x the render's shorter side
+# (docs/experiments/cover-loss.md)
+COVER_EVERY = 4
+COVER_ANGLE_DEG = 20.0
+COVER_SCALE = 0.5
+COVER_KERNEL_FRAC = 0.125
+# the init.backdrop Gaussians' opacity at step 0 (no train view sees them; docs/experiments/two-view-geometry.md)
+BACKDROP_OPACITY = 0.9
+
+
 def _cover(ctx, grad_attrs: tuple | None = None):
-    cfg = ctx.trainer.cfg
-    every = max(1, int(getattr(cfg, "cover_every", 1)))
+    every = max(1, int(COVER_EVERY))
     depth = ctx.meta.get("depths")
     if ctx.step % every or depth is None:
         return None
@@ -250,15 +170,15 @@ def _cover(ctx, grad_attrs: tuple | None = None):
         return None
     pivot = float(hit.median())
     rng = np.random.default_rng([int(getattr(ctx.trainer, "seed", 0)), int(ctx.step), 11])
-    angle = math.radians(float(cfg.cover_angle_deg)) * float(rng.uniform(0.5, 1.0))
-    vt = orbit_view(ctx.item, pivot, float(rng.uniform(0, 2 * math.pi)), angle, float(getattr(cfg, "cover_scale", 0.5)))
+    angle = math.radians(float(COVER_ANGLE_DEG)) * float(rng.uniform(0.5, 1.0))
+    vt = orbit_view(ctx.item, pivot, float(rng.uniform(0, 2 * math.pi)), angle, float(COVER_SCALE))
     # only the Gaussians the step's own view draws may change for it: one outside every train
     # frustum is held by no photometric loss, and grown by this term alone it became fog
     radii = ctx.meta.get("radii")  # [C, N] on every backend (engine.raster)
     drawn = None if radii is None else radii[0] > 0
     _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn,
                                               grad_attrs=grad_attrs)
-    kernel = cover_kernel_px(float(getattr(cfg, "cover_kernel_frac", 0.125)), int(vt["height"]), int(vt["width"]))
+    kernel = cover_kernel_px(float(COVER_KERNEL_FRAC), int(vt["height"]), int(vt["width"]))
     return cover_loss(alpha[0, ..., 0], kernel,
                       seen_from(vt, ctx.item, pivot).to(alpha.device))
 
@@ -284,14 +204,10 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
     """The enabled geometry terms as ``LossTerm`` (the trainer's class, passed in to keep
     this module free of the trainer)."""
     terms = []
-    if getattr(cfg, "lambda_binocular", 0.0) > 0:
-        terms.append(LossTerm("binocular", cfg.lambda_binocular, _binocular))
-    if getattr(cfg, "lambda_depth_smooth", 0.0) > 0:
-        terms.append(LossTerm("depth_smooth", cfg.lambda_depth_smooth, _depth_smooth))
-    if getattr(cfg, "lambda_cover", 0.0) > 0:
+    if cfg.losses.cover > 0:
         # parsed once per run; a wrong name fails here, before the first step
-        attrs = cover_grad_attrs(getattr(cfg, "cover_grad", "all"))
-        terms.append(LossTerm("cover", cfg.lambda_cover, functools.partial(_cover, grad_attrs=attrs)))
+        attrs = cover_grad_attrs(cfg.losses.cover_grad)
+        terms.append(LossTerm("cover", cfg.losses.cover, functools.partial(_cover, grad_attrs=attrs)))
     return terms
 
 
@@ -315,7 +231,7 @@ def set_tail_opacity(opacity_logits: torch.Tensor, count: int, opacity: float) -
 
 
 def _backdrop_opacity_hook(opacity: float):
-    """The ``init_backdrop`` Gaussians (appended last to the initial cloud, run.json
+    """The ``init.backdrop`` Gaussians (appended last to the initial cloud, run.json
     ``init.backdrop``) lie beyond every train camera's image, so no step trains their opacity;
     at ``init_opacity`` (0.1) a viewer 20-30 deg off sees through them (alpha < 0.5). Set once,
     after the first step (before any densification reorders the Gaussians)."""
@@ -330,18 +246,8 @@ def _backdrop_opacity_hook(opacity: float):
 def geometry_post_step_hooks(cfg) -> list:
     """Hooks ``(trainer, step, item, meta)`` run after each optimiser step."""
     hooks = []
-    if getattr(cfg, "init_backdrop", 0.0) > 0 and getattr(cfg, "backdrop_opacity", 0.0) > 0:
-        hooks.append(_backdrop_opacity_hook(cfg.backdrop_opacity))
-    if 0.0 < getattr(cfg, "opacity_decay", 1.0) < 1.0:
-        hooks.append(_opacity_decay_hook(cfg.opacity_decay, *opacity_decay_window(cfg)))
+    if cfg.init.backdrop > 0 and BACKDROP_OPACITY > 0:
+        hooks.append(_backdrop_opacity_hook(BACKDROP_OPACITY))
+    if 0.0 < cfg.losses.opacity_decay < 1.0:
+        hooks.append(_opacity_decay_hook(cfg.losses.opacity_decay, *opacity_decay_window(cfg)))
     return hooks
-
-
-def step_background(cfg, step: int, seed: int, device) -> torch.Tensor | None:
-    """The background colour [3] of a training step: random with ``random_background``
-    (deterministic in seed and step, so resume equals an uninterrupted run), else None
-    (the model's fixed background)."""
-    if not getattr(cfg, "random_background", False):
-        return None
-    gen = torch.Generator().manual_seed(int(seed) * 7919 + int(step))
-    return torch.rand(3, generator=gen).to(device)

@@ -13,27 +13,28 @@ import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim
 
+from ..scene.deformation import TIME_L1_WEIGHT, TV_WEIGHT
 from ..scene.model import TRAJ_MEANS
-from ..scene.rigidity import knn_neighbours, rigidity_losses
 from ..scene.trajectory import inner_residual_sq
+from .config import TrainConfig
 from .fused_ssim import fused_ssim
-from .geometry_losses import geometry_loss_terms, step_background
-from .presets import TrainConfig
-from .still_hold import StillHold
+from .geometry_losses import geometry_loss_terms
 
-__all__ = ["LossTerm", "StepContext", "default_loss_terms", "frame_item_fields"]
+__all__ = ["LossTerm", "StepContext", "default_loss_terms", "frame_item_fields", "BLOCK_SIZE"]
+
+BLOCK_SIZE = 4  # side of the block loss's average pooling (paper Eq. 20: 4x4)
 
 def frame_item_fields(frame, cfg: TrainConfig, device) -> dict:
     """The trainer item's fields that say how a train frame is supervised: ``synthetic``
     (a baseline's generated frame, engine.train.baselines), ``knot`` (its instant is an RGB
     instant: trajectory knot, scene-flow carry, spike intervals; the frame's ``knot``, from
-    ``cfg.baseline_instants``), and for synthetic frames ``loss_scale``
-    (``cfg.baseline_weight``) and ``trusted`` (bool [1, H, W, 1] of the pixels the frame loss
+    ``cfg.baseline.instants``), and for synthetic frames ``loss_scale``
+    (``cfg.baseline.weight``) and ``trusted`` (bool [1, H, W, 1] of the pixels the frame loss
     uses, or absent: all)."""
     synthetic = bool(getattr(frame, "extra", {}).get("synthetic"))
     out = {"synthetic": synthetic, "knot": bool(getattr(frame, "knot", True))}
     if synthetic:
-        out["loss_scale"] = float(cfg.baseline_weight)
+        out["loss_scale"] = float(cfg.baseline.weight)
         trusted = getattr(frame, "trusted", None)
         if trusted is not None:
             out["trusted"] = torch.as_tensor(trusted, dtype=torch.bool, device=device)[None, ..., None]
@@ -94,34 +95,10 @@ def dssim(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor | None:
     return 1.0 - ssim(pred, gt, data_range=1.0, size_average=True)
 
 
-def _still_term(hold: StillHold):
-    """The still hold (engine.train.still_hold): the frame loss of a render between two RGB
-    frames against their blend, on their still pixels only (elsewhere the render is its own target)."""
-    def term(ctx: StepContext):
-        tr = ctx.trainer
-        drawn = hold.sample(tr, ctx.step)
-        if drawn is None:
-            return None
-        vt, t, blend, still = drawn
-        gated = hold.spike_view(tr) is not None
-        rgb, alpha, meta, _ = tr.model.render(vt, t, render_depth=gated,
-                                              background=step_background(tr.cfg, ctx.step, tr.seed, tr.device))
-        if gated and meta.get("depths") is not None:
-            seen = hold.spike_still(tr, vt, float(vt["time"]), meta["depths"][0, ..., 0].detach(),
-                                    alpha[0, ..., 0].detach())
-            still = still if seen is None else still & seen
-        target = torch.where(still, blend, rgb.detach())
-        lam = float(tr.cfg.lambda_dssim)
-        loss = (rgb - target).abs().mean() * (1.0 - lam)
-        d = dssim(rgb, target) if lam > 0 else None
-        return loss if d is None else loss + lam * d
-    return term
-
-
 def _block_l1(ctx: StepContext):
     """L1 between 4x4 average-pooled images (the paper's block supervision, Eq. 20): a
     wider basin of attraction for displaced objects than per-pixel L1."""
-    k = ctx.trainer.cfg.block_size
+    k = BLOCK_SIZE
     pred = ctx.rgb.permute(0, 3, 1, 2)
     if min(pred.shape[-2:]) < 2 * k:
         return None
@@ -163,8 +140,8 @@ def _deform_reg(ctx: StepContext):
     cfg = ctx.trainer.cfg
     if d is None or not ctx.trainer.model.use_deformation:
         return None
-    smooth = cfg.spike_time_smooth_weight if ctx.trainer.guided else cfg.time_smooth_weight
-    return d.regularization(cfg.tv_weight, smooth, cfg.time_l1_weight)
+    smooth = cfg.spike.time_smooth_weight if ctx.trainer.guided else cfg.hexplane.time_smooth_weight
+    return d.regularization(TV_WEIGHT, smooth, TIME_L1_WEIGHT)
 
 
 def _traj_reg(ctx: StepContext):
@@ -177,7 +154,7 @@ def _traj_reg(ctx: StepContext):
     opt, curve = m.gaussians.optimizer, getattr(m.gaussians, TRAJ_MEANS)
     if getattr(opt, "lazy_for", None) is not None and opt.lazy_for(curve):
         # a lazy optimiser adds the prior's gradient on the columns it updates (engine.scene.lazy_adam)
-        opt.inner_decay[TRAJ_MEANS] = float(ctx.trainer.cfg.traj_inner_weight) / ctx.trainer.extent ** 2
+        opt.inner_decay[TRAJ_MEANS] = float(ctx.trainer.cfg.motion.inner_weight) / ctx.trainer.extent ** 2
         return None
     sq = inner_residual_sq(curve)
     if sq.numel() == 0:
@@ -185,44 +162,26 @@ def _traj_reg(ctx: StepContext):
     return sq.mean() / ctx.trainer.extent ** 2
 
 
-def _rigidity(ctx: StepContext):
-    """Luiten et al.'s local rigidity (rigidity + rotation similarity + isometry over kNN,
-    engine.scene.rigidity) between the canonical Gaussians and the render's instant; the
-    neighbours are recomputed when the Gaussians change (densification) or every 100 steps."""
-    tr, g = ctx.trainer, ctx.trainer.model.gaussians
-    cache = getattr(tr, "_rigidity_nbrs", None)
-    if cache is None or cache[0] != g.num_gaussians or ctx.step - cache[1] >= 100:
-        nbr, w = knn_neighbours(g.means.detach(), int(tr.cfg.rigidity_k))
-        cache = tr._rigidity_nbrs = (g.num_gaussians, ctx.step, nbr, w)
-    parts = rigidity_losses(g.means.detach(), g.quats.detach(), ctx.attrs["means"], ctx.attrs["quats"],
-                            cache[2], cache[3])
-    return (parts["rigid"] + parts["rot"] + parts["iso"]) / tr.extent
-
-
 MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")
 
 
 def renders_at_instants_only(cfg: TrainConfig, items, rgb_only: bool) -> bool:
-    """Whether every render that trains a run is at an RGB instant: RGB-only (no spike terms), no
-    synthetic frames between the instants (the Interpolate baseline's) and no still hold (it renders
-    between them). Then no loss reads the curves' inner control points (``GaussianModel.instants_only``)."""
-    return bool(rgb_only) and not cfg.still_weight > 0 and all(it.get("knot", True) for it in items)
+    """Whether every render that trains a run is at an RGB instant: RGB-only (no spike terms) and no
+    synthetic frames between the instants (the Interpolate baseline's). Then no loss reads the curves'
+    inner control points (``GaussianModel.instants_only``)."""
+    return bool(rgb_only) and all(it.get("knot", True) for it in items)
 
 
 def default_loss_terms(cfg: TrainConfig) -> list[LossTerm]:
-    terms = [LossTerm("l1", 1.0 - cfg.lambda_dssim, _l1)]
-    if cfg.lambda_dssim > 0:
-        terms.append(LossTerm("dssim", cfg.lambda_dssim, _dssim))
-    if cfg.lambda_block > 0:
-        terms.append(LossTerm("block_l1", cfg.lambda_block, _block_l1))
-    if cfg.lambda_depth > 0:
-        terms.append(LossTerm("stereo_depth", cfg.lambda_depth, _stereo_depth))
+    terms = [LossTerm("l1", 1.0 - cfg.losses.dssim, _l1)]
+    if cfg.losses.dssim > 0:
+        terms.append(LossTerm("dssim", cfg.losses.dssim, _dssim))
+    if cfg.losses.block > 0:
+        terms.append(LossTerm("block_l1", cfg.losses.block, _block_l1))
+    if cfg.losses.depth > 0:
+        terms.append(LossTerm("stereo_depth", cfg.losses.depth, _stereo_depth))
     terms.extend(geometry_loss_terms(cfg, LossTerm))  # issue 14 (engine.train.geometry_losses)
     terms.append(LossTerm("deform_reg", 1.0, _deform_reg, stages=("deform",)))
-    if cfg.rigidity_weight > 0:
-        terms.append(LossTerm("rigidity", cfg.rigidity_weight, _rigidity, stages=("deform",)))
-    if "trajectory" in cfg.motion and cfg.traj_inner_weight > 0:
-        terms.append(LossTerm("traj_reg", cfg.traj_inner_weight, _traj_reg, stages=("deform",)))
-    if "trajectory" in cfg.motion and cfg.still_weight > 0:
-        terms.append(LossTerm("still", cfg.still_weight, _still_term(StillHold(cfg)), stages=("deform",)))
+    if "trajectory" in cfg.motion.representation and cfg.motion.inner_weight > 0:
+        terms.append(LossTerm("traj_reg", cfg.motion.inner_weight, _traj_reg, stages=("deform",)))
     return terms

@@ -18,22 +18,19 @@ This switch (``quiet_curves``) holds at zero the segment-``k`` inner residuals (
 and rotations) of the Gaussians that, at both ends of segment ``k`` (RGB instants ``T_k``,
 ``T_{k+1}``), project inside the spike view onto blocks where the spike stream did not
 change during interval ``k`` (:class:`engine.spike.change.SpikeChange`, dilated by
-``quiet_curves_dilate`` blocks): what the spike view saw there is still, so the curve between
+``DILATE`` blocks): what the spike view saw there is still, so the curve between
 the two RGB instants is the smooth one the RGB frames give. Gaussians outside the spike view
 or over a change keep their bends. Applied after every optimiser step (a projection onto
 the constraint, also undoing the flow fit's changes there); the mask is recomputed when the
-Gaussian count changes and every ``quiet_curves_refresh`` steps (junctions move slowly).
+Gaussian count changes and every ``REFRESH`` steps (junctions move slowly).
 
-``quiet_junctions`` (off) also holds the junctions joined by a run of quiet segments at their
-mean (:func:`tie_junctions`): each RGB instant fits a Gaussian's place on its own (consecutive
-places differ by a median 4 cm on the demo), and half-way between two places a still wall's
-texture is misaligned (README "Where the demo loses to the Interpolate baseline"). It pays on
-the demo and the fast scene and costs ``between`` (measured there), so it stays off.
+Holding the junctions joined by quiet segments at their mean as well (quiet junctions) was
+measured and dropped (docs/experiments/quiet-curves.md).
 
 Measured (README "Quiet curves"; 1000 fast steps, seeds 0 / 1, full - RGB-only between RGB
 frames at the eval cameras, off -> on): demo -0.24 / -0.27 -> +0.30 / +0.24 dB, fast +0.13 /
 +0.11 -> +0.20 / +0.43, ``between`` +1.53 / +1.26 -> +1.47 / +1.38 (moving pixels +2.49 / +2.15
--> +2.28 / +2.15). Dilation 1 block: post hoc (``scripts/flatten_curves.py --quiet``) 2 / 1 / 0
+-> +2.28 / +2.15). Dilation 1 block: post hoc (curves flattened after training) 2 / 1 / 0
 blocks gave the demo 21.74 / 21.95 / 22.05 dB and ``between`` 21.80 / 21.83 / 21.69 (0 clips
 the moving objects' edges). Cost: ~23 ms CPU per mask (36k Gaussians, 9 intervals), ~3 ms per
 step to apply it with :func:`inner_keep`'s mask. On the CPU :func:`zero_quiet_columns` is a kernel
@@ -50,10 +47,16 @@ import torch
 from ..numba_cache import LazyKernels
 from ..scene.fine_deformation import project_to_grid
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS
-from .spike_guidance import spike_stream_info
+from .spike_guidance import CHANGE_BLOCK, spike_stream_info
 
-__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "zero_quiet_columns", "junction_groups",
-           "tie_junctions", "QuietCurves", "quiet_curves_factory", "warmup"]
+# change-map blocks added around the changed ones (2 / 1 / 0: 1 keeps the moving objects' edges) and
+# steps a quiet mask (~14 ms at 23k Gaussians) is reused while the Gaussian count is unchanged
+# (10 -> 50: within noise; docs/experiments/quiet-curves.md)
+DILATE = 1
+REFRESH = 50
+
+__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "zero_quiet_columns",
+           "QuietCurves", "quiet_curves_factory", "warmup"]
 
 KERNELS = LazyKernels(__package__, "_quiet_kernels")
 # False: the mask multiply below (inner_keep) on every device, as before the kernel (bench-step "quiet-mask")
@@ -167,33 +170,6 @@ def warmup() -> float:
     return time.perf_counter() - t0
 
 
-def junction_groups(quiet: torch.Tensor) -> torch.Tensor:
-    """long [N * F]: for each row and junction of ``quiet`` [N, F-1], a flat index shared by the
-    junctions joined by quiet segments (a run of quiet segments ``k0 .. k1`` joins junctions
-    ``k0 .. k1 + 1``), distinct otherwise (row-major, ``row * F + group``)."""
-    n, s = quiet.shape
-    new_group = torch.ones(n, s + 1, dtype=torch.long, device=quiet.device)
-    new_group[:, 0] = 0
-    new_group[:, 1:] = (~quiet).long()
-    rows = torch.arange(n, device=quiet.device)[:, None] * (s + 1)
-    return (rows + new_group.cumsum(1)).reshape(-1)
-
-
-@torch.no_grad()
-def tie_junctions(params: torch.Tensor, groups: torch.Tensor) -> None:
-    """Set the junctions (columns ``0::3``) of ``params`` [N, K, C] joined by quiet segments
-    (``groups``: :func:`junction_groups`) to their mean, in place: where the spike view saw
-    nothing change over a run of RGB intervals, the Gaussian is where it was."""
-    n, _, c = params.shape
-    junctions = params.data[:, 0::3]
-    f = junctions.shape[1]
-    flat = junctions.reshape(n * f, c)
-    sums = torch.zeros(n * f, c, dtype=params.dtype, device=params.device).index_add_(0, groups, flat)
-    counts = torch.zeros(n * f, dtype=params.dtype, device=params.device).index_add_(
-        0, groups, torch.ones(n * f, dtype=params.dtype, device=params.device))
-    params.data[:, 0::3] = (sums[groups] / counts[groups, None]).reshape(n, f, c)
-
-
 class QuietCurves:
     """Post-step hook of a run (see the module doc)."""
 
@@ -219,13 +195,13 @@ class QuietCurves:
         params = getattr(g, TRAJ_MEANS)
         hit = self._mask
         # keyed on the curves' tensor too: the budget probe steps a copy of the model through this hook
-        refresh = max(1, int(self.cfg.quiet_curves_refresh))
+        refresh = max(1, int(REFRESH))
         if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= refresh or step < hit[0]
                 or hit[4] != id(params)):
             dev = params.device
             quiet = quiet_segments(g.means.detach(), params.detach()[:, 0::3], self.change,
                                    self.intervals(model.trajectory["knots"]), self.viewmat.to(dev),
-                                   self.K.to(dev), *self.size, dilate=int(self.cfg.quiet_curves_dilate))
+                                   self.K.to(dev), *self.size, dilate=int(DILATE))
             self._mask = hit = (step, params.shape[0], quiet, {}, id(params))
             self.last = {"step": int(step), "quiet_fraction": float(quiet.float().mean()) if quiet.numel() else 0.0}
         return hit[2]
@@ -262,24 +238,12 @@ class QuietCurves:
         if hit is None or hit[1] != params.shape[0]:
             return
         zero_quiet_columns(params, hit[2], cols, hit[3])
-        if self.cfg.quiet_junctions:
-            tie_junctions(params, self._groups())
-
-    def _groups(self) -> torch.Tensor:
-        """:func:`junction_groups` of the current mask, built once per mask."""
-        quiet, keeps = self._mask[2], self._mask[3]
-        if "groups" not in keeps:
-            keeps["groups"] = junction_groups(quiet)
-        return keeps["groups"]
 
     def _apply(self, g, local: bool) -> None:
         quiet, keeps = self._mask[2], self._mask[3]
-        tie = bool(self.cfg.quiet_junctions)
         for params in (getattr(g, TRAJ_MEANS), getattr(g, TRAJ_QUATS)):
-            cols = g.optimizer.last_columns(params) if local and not tie else None
+            cols = g.optimizer.last_columns(params) if local else None
             zero_quiet_columns(params, quiet, cols, keeps)
-            if tie:
-                tie_junctions(params, self._groups())
 
 
 def quiet_curves_factory(trainer) -> list:
@@ -290,7 +254,7 @@ def quiet_curves_factory(trainer) -> list:
     cfg = trainer.cfg
     guid = getattr(trainer, "spike_guidance", None)
     hooks = getattr(trainer, "post_step_hooks", None)
-    if not cfg.quiet_curves or guid is None or hooks is None or "trajectory" not in cfg.motion:
+    if not cfg.spike.quiet_curves or guid is None or hooks is None or "trajectory" not in cfg.motion.representation:
         return []
     info = spike_stream_info(trainer.capture)
     stream = guid.stream
@@ -299,7 +263,7 @@ def quiet_curves_factory(trainer) -> list:
     cache = guid.window_cache()
     if cache is None:
         return []
-    term = QuietCurves(trainer, stream, cache.change(int(cfg.spike_change_block)), cache.rgb_times)
+    term = QuietCurves(trainer, stream, cache.change(int(CHANGE_BLOCK)), cache.rgb_times)
     trainer.quiet_curves = term
     hooks.append(term)
     return []

@@ -34,7 +34,7 @@ from .budget import (
     steps_for_budget,
     warm_up_runtime,
 )
-from .presets import TrainConfig, get_preset
+from .config import TrainConfig, get_preset
 from .spike_flow import close_flow_worker
 from .trainer import LOSS_FACTORIES, LossFactory, Trainer, capture_path
 
@@ -51,8 +51,7 @@ def _load_capture(capture):
 
 def _config_key(cfg: TrainConfig, seed: int, rgb_only: bool, capture_path: str | None) -> dict:
     d = cfg.to_dict()
-    for k in ("checkpoint_every_s", "log_every", "expected_seconds"):
-        d.pop(k, None)
+    d["schedule"].pop("checkpoint_every_s", None)  # how often a run saves does not change what it computes
     return {"config": d, "seed": int(seed), "rgb_only": bool(rgb_only), "capture": capture_path}
 
 
@@ -88,9 +87,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     run_dir.mkdir(parents=True, exist_ok=True)
     cap = _load_capture(capture)
     cfg = get_preset(preset, overrides)
-    if cfg.baseline:  # two-stage baselines (paper Table 1): synthetic in-between training frames
-        cap = with_baseline(cap, cfg.baseline, per_interval=cfg.baseline_per_interval, mask_px=cfg.baseline_mask_px,
-                            instants=cfg.baseline_instants)
+    if cfg.baseline.kind:  # two-stage baselines (paper Table 1): synthetic in-between training frames
+        cap = with_baseline(cap, cfg.baseline.kind, instants=cfg.baseline.instants)
     torch.manual_seed(seed)
     np.random.seed(seed % (2 ** 32))
     cap_path = capture_path(cap)
@@ -127,7 +125,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         es = trainer.early_stop
         skip_notes["early_stop_proxy"] = {"source": es.source, "frames": list(es.names),
                                           "note": "train frames held back from training; eval frames are never scored"}
-    elif cfg.early_stop:
+    elif cfg.skip.early_stop:
         skip_notes["early_stop_proxy"] = {"source": None, "frames": [],
                                           "note": "early stopping off: no instant is seen by two train cameras, so "
                                                   "no train frame can be held back as the proxy"}
@@ -234,7 +232,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                 progress({"step": step, "total_steps": total, "stage": out["stage"], "loss": out["loss"],
                           "psnr": out["psnr"], "elapsed_s": prior_seconds + (now - t_start),
                           "eta_s": rate * (total - step), "num_gaussians": trainer.model.gaussians.num_gaussians})
-            if now - last_ckpt >= cfg.checkpoint_every_s and step < total:
+            if now - last_ckpt >= cfg.schedule.checkpoint_every_s and step < total:
                 snapshot(step, "running", prior_seconds + now - t_start)
                 update_run_json(run_dir, step=step, train_seconds=prior_seconds + now - t_start)
                 last_ckpt = time.perf_counter()

@@ -44,6 +44,10 @@ def _grey8(img: np.ndarray) -> np.ndarray:
 # ~2.5 of ~16 ms CPU per 160 x 120 flow (its buffers allocated afresh, measured); the flow is the same,
 # bit for bit: calc() starts from scratch when no initial flow is passed (tests/test_step_cost.py).
 # False: a new object per call, as before (bench-step's "stepcost-before" variant)
+# x extent: Gaussians hidden from the train cameras take the motion of the nearest carried (or still)
+# one within this distance (0: off); the carry's optical flow: lk (engine.train.interpolation) | dis
+CARRY_HIDDEN = 0.05
+CARRY_FLOW = "lk"
 REUSE_DIS = True
 _DIS = threading.local()
 
@@ -273,25 +277,24 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
     by_cam: dict = {}
     for f in frames:
         by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
-    fb_tol, method = float(trainer.cfg.traj_carry_fb), trainer.cfg.traj_carry_flow
+    method = CARRY_FLOW
     for at in by_cam.values():
         fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
         if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
             continue
         img_a, img_b = frame_image(trainer, fa), frame_image(trainer, fb)
-        back = image_flow(img_b, img_a, method) if fb_tol > 0 else None
         new, ok, st = carry_by_flow(pos_i, trainer.capture.view(fa), image_flow(img_a, img_b, method), *pri[id(fa)],
-                                    *pri[id(fb)], return_still=True, flow_ba=back, fb_tol_px=fb_tol)
+                                    *pri[id(fb)], return_still=True)
         ok &= todo
         delta[ok] = new[ok] - pos_i[ok]
         todo &= ~ok
         still |= st
     n_flow = int((~todo).sum())
-    if trainer.cfg.traj_carry_hidden > 0:
-        delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, trainer.cfg.traj_carry_hidden * trainer.extent)
+    if CARRY_HIDDEN > 0:
+        delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, CARRY_HIDDEN * trainer.extent)
         todo &= ~(taken & (np.abs(delta).sum(1) > 0))
     carried = ~todo
-    if trainer.cfg.birth_motion != "none":  # births.move_born moved those
+    if trainer.cfg.births.motion != "none":  # births.move_born moved those
         carried &= ~born_mask(g).cpu().numpy()
     if carried.any():
         tm = getattr(g, TRAJ_MEANS).data

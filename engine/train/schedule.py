@@ -115,7 +115,7 @@ class Schedule:
 
     def densify_window(self, cfg) -> tuple[int, int]:
         """(first, end) of densification in virtual steps (fractions of the run)."""
-        return int(cfg.densify_from * self.nominal), int(cfg.densify_until * self.nominal)
+        return int(cfg.densify.start * self.nominal), int(cfg.densify.stop * self.nominal)
 
     def densify_due(self, step: int, cfg) -> bool:
         """Densify after ``step``: inside the window, every ``densify_every`` *real* steps from
@@ -125,7 +125,7 @@ class Schedule:
         120 s, load ~8: 17.1k Gaussians; the old schedule: 5 times, 21.5k; this cadence: 5)."""
         lo, hi = self.densify_window(cfg)
         lo_s, hi_s = self.first_step_at(lo), self.first_step_at(hi)
-        every = max(1, min(cfg.densify_every, max(1, (hi_s - lo_s) // 3)))
+        every = max(1, min(cfg.densify.every, max(1, (hi_s - lo_s) // 3)))
         return lo_s < step and self.virtual(step) < hi and (step - lo_s) % every == 0
 
     def in_densify_window(self, step: int, cfg) -> bool:
@@ -140,7 +140,8 @@ class Schedule:
 
     def sh_degree(self, step: int, cfg) -> int:
         """SH bands active at ``step``: one more every ``sh_step_fraction`` of the run."""
-        return min(cfg.sh_degree, int(self.virtual(step) / max(1, cfg.sh_step_fraction * self.nominal)))
+        g = cfg.gaussians
+        return min(g.sh_degree, int(self.virtual(step) / max(1, g.sh_step_fraction * self.nominal)))
 
     # ------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:

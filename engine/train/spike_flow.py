@@ -4,7 +4,7 @@ The spike loss (Eq. 17) compares rendered and captured spike counts pixel by pix
 basin is narrow: a part that moved several spike pixels between two RGB instants gives
 gradients that do not point along its motion (``between`` scene: the visible cube
 Gaussians' image-plane error 30.7 mm RGB-only -> 31.6 mm with the spike loss, the 15 Hz
-vibration's own mean displacement being 31 mm; ``scripts/trajectory_error.py --visible``).
+vibration's own mean displacement being 31 mm; ``tools/trajectory_error.py --visible``).
 
 This term turns the spike stream's 2D evidence into a displacement target instead. Grey
 images are reconstructed from the spikes (TFP over ``spike_flow_window`` frames with the
@@ -45,6 +45,7 @@ import torch
 
 from ..scene import trajectory as traj
 from ..scene.model import TIME_CENTER, TRAJ_MEANS, Model4D, born_mask
+from . import scene_flow, spike_flow_cache
 from .losses import LossTerm
 from .scene_flow import dense_flow, propagate_to_hidden
 from .spike_flow_cache import FlowCache
@@ -52,6 +53,14 @@ from .spike_flow_pairs import flow_pair, forward_backward_valid, gray_to_u8, war
 from .spike_guidance import admitted_time, spike_view_guidance
 from .spike_view import fit_inner_residuals, lift, project, projected_flow_loss, sample_map, segment_basis
 
+# the surface a flow supervises: |z - rendered depth| <= DEPTH_TOL x depth, at most MAX_GAUSSIANS of
+# it a step (0: all), its set reused for SURFACE_EVERY steps while the Gaussian count is unchanged;
+# the loss's smooth-L1 knee BETA (spike px); the fit leaves curves whose median flow is below MIN_PX
+DEPTH_TOL = 0.03
+MAX_GAUSSIANS = 4096
+SURFACE_EVERY = 30
+BETA = 1.0
+MIN_PX = 0.5
 JUNCTION_MODES = ("none", "born", "all")  # spike_flow_junctions (SpikeFlowSupervision.flow_junctions)
 
 __all__ = ["JUNCTION_MODES", "gray_to_u8", "dense_flow", "forward_backward_valid", "flow_pair", "warm_flow_pair",
@@ -169,8 +178,8 @@ class SpikeFlowSupervision(FlowCache):
         self.trainer = trainer
         self.guidance = guidance
         self.cfg = trainer.cfg
-        if self.cfg.spike_flow_junctions not in JUNCTION_MODES:
-            raise ValueError(f"unknown spike_flow_junctions {self.cfg.spike_flow_junctions!r}; "
+        if self.cfg.spike_flow.junctions not in JUNCTION_MODES:
+            raise ValueError(f"unknown spike_flow_junctions {self.cfg.spike_flow.junctions!r}; "
                              f"choose one of {', '.join(JUNCTION_MODES)}")
         stream = guidance.stream
         self.stream = stream
@@ -222,7 +231,7 @@ class SpikeFlowSupervision(FlowCache):
             uvi = uv[idx]
             d = sample_map(meta["depths"][0], uvi, "nearest")[:, 0]
             a = sample_map(alpha[0], uvi, "nearest")[:, 0]
-            keep = (a > 0.5) & ((z[idx] - d).abs() <= float(self.cfg.spike_flow_depth_tol) * d)
+            keep = (a > 0.5) & ((z[idx] - d).abs() <= float(DEPTH_TOL) * d)
             return idx[keep], uvi[keep]
 
     def cached_surface(self, model: Model4D, t_ref: float, step: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -230,7 +239,7 @@ class SpikeFlowSupervision(FlowCache):
         steps while the Gaussian count is unchanged (densification re-indexes); pixels re-projected."""
         n = model.gaussians.num_gaussians
         hit = self._surface.get(t_ref)
-        if hit is None or hit[1] != n or step - hit[0] >= max(1, self.cfg.spike_flow_surface_every) or step < hit[0]:
+        if hit is None or hit[1] != n or step - hit[0] >= max(1, SURFACE_EVERY) or step < hit[0]:
             idx, uv = self.surface(model, t_ref)
             self._surface[t_ref] = (step, n, idx)
             return idx, uv
@@ -250,11 +259,11 @@ class SpikeFlowSupervision(FlowCache):
 
         model.gaussians.settle()  # a lazy optimiser's skipped moves land before the fit writes
         a, b = self.times[k], self.times[k + 1]
-        n = max(1, int(self.cfg.spike_flow_steps))
+        n = max(1, int(spike_flow_cache.FLOW_STEPS))
         us = torch.arange(1, n + 1, dtype=torch.float32) / (n + 1)
         idx, uv_ref = self.surface(model, a)
         moved = {}
-        mode = self.cfg.spike_flow_junctions
+        mode = self.cfg.spike_flow.junctions
         if mode != "none":  # before the inner fit, which starts from the moved curves
             moved["junctions_ahead"] = self.flow_junctions(model, k, a, b, idx, uv_ref, born_only=mode == "born",
                                                            extent=extent)
@@ -281,19 +290,19 @@ class SpikeFlowSupervision(FlowCache):
         dD = fit_inner_residuals(torch.stack(cur), torch.stack(tgt), w, us.to(params.device))
         enough = w.sum(0) >= 0.5 * n  # observed at half the instants at least
         # the flow's noise on a still surface (0.3 px at the default window, README) is not motion
-        still = torch.stack(mags).median(0).values < float(self.cfg.spike_flow_min_px)
+        still = torch.stack(mags).median(0).values < float(MIN_PX)
         dD[still] = 0.0
         full = torch.zeros(params.shape[0], 2, 3, dtype=params.dtype, device=params.device)
         full[idx[enough]] = dD[enough].to(params.dtype)
         decided = torch.zeros(params.shape[0], dtype=torch.bool)
         decided[idx[enough].cpu()] = True
         hidden = 0
-        if self.cfg.traj_carry_hidden > 0 and bool(decided.any()):
+        if scene_flow.CARRY_HIDDEN > 0 and bool(decided.any()):
             pos = (g.means + traj.evaluate(params, knots, a)).cpu().numpy()
             outs = []
             for j in range(2):
                 d, taken = propagate_to_hidden(pos, full[:, j].cpu().numpy(), decided.numpy(),
-                                               float(self.cfg.traj_carry_hidden) * extent)
+                                               float(scene_flow.CARRY_HIDDEN) * extent)
                 outs.append(torch.as_tensor(d, device=params.device, dtype=params.dtype))
             static = model.effective_static_mask()
             keep = torch.ones(params.shape[0], dtype=torch.bool, device=params.device)
@@ -339,11 +348,11 @@ class SpikeFlowSupervision(FlowCache):
             info["born"] = int(idx.numel())
             if idx.numel() == 0:
                 return info
-        n = max(1, int(self.cfg.spike_flow_steps))
+        n = max(1, int(spike_flow_cache.FLOW_STEPS))
         frac = n / (n + 1)
         flow, valid = self.flow(ref, ref + (other - ref) * frac)
         f = sample_map(flow, uv_ref)
-        ok = (sample_map(valid, uv_ref, "nearest")[:, 0] > 0.5) & (f.norm(dim=-1) >= float(self.cfg.spike_flow_min_px))
+        ok = (sample_map(valid, uv_ref, "nearest")[:, 0] > 0.5) & (f.norm(dim=-1) >= float(MIN_PX))
         if not bool(ok.any()):
             return info
         idx, uv, f = idx[ok], uv_ref[ok], f[ok]
@@ -361,8 +370,8 @@ class SpikeFlowSupervision(FlowCache):
         for j in moved:
             tm[idx, 3 * j] = new
         info["moved"] = int(idx.numel())
-        radius = float(self.cfg.traj_carry_hidden) * extent
-        if self.cfg.spike_flow_junctions_hidden and not born_only and radius > 0:
+        radius = float(scene_flow.CARRY_HIDDEN) * extent
+        if self.cfg.spike_flow.junctions_hidden and not born_only and radius > 0:
             # what the spike view does not see of a moved part (its back, its inside) moves with it
             pos = (g.means + traj.evaluate(getattr(g, TRAJ_MEANS), knots, ref)).cpu().numpy()
             full = np.zeros_like(pos)
@@ -390,7 +399,7 @@ class SpikeFlowSupervision(FlowCache):
         asked for during this step."""
         if tr is self.trainer and callable(getattr(tr, "time_window", None)):  # not the budget's probe copy
             self.prefetch(tr.time_window(step + 1))
-        if not self.cfg.spike_flow_fit:
+        if not self.cfg.spike_flow.fit:
             return
         for k, info in list(self.fitted.items()):
             if not info and tr.model is not None and tr.model.trajectory is not None:
@@ -408,7 +417,7 @@ class SpikeFlowSupervision(FlowCache):
             return None
         t_ref, tq = pair
         k = max(i for i, v in enumerate(self.times) if v <= tq)
-        if self.cfg.spike_flow_fit and k not in self.fitted and self.times[k + 1] <= admitted + 1e-9:
+        if self.cfg.spike_flow.fit and k not in self.fitted and self.times[k + 1] <= admitted + 1e-9:
             self.fitted[k] = {}  # fitted after this step's optimiser step (after_step), not under autograd
         idx, uv_ref = self.cached_surface(model, t_ref, ctx.step)
         flow, valid = self.flow(t_ref, tq)
@@ -416,7 +425,7 @@ class SpikeFlowSupervision(FlowCache):
             return None
         ok = sample_map(valid, uv_ref, "nearest")[:, 0] > 0.5
         idx, uv_ref = idx[ok], uv_ref[ok]
-        cap = int(self.cfg.spike_flow_max_gaussians)
+        cap = int(MAX_GAUSSIANS)
         if cap > 0 and idx.numel() > cap:  # a random subset bounds the cost per step
             gen = torch.Generator(device="cpu").manual_seed(tr.seed * 7919 + ctx.step)
             pick = torch.randperm(idx.numel(), generator=gen)[:cap].to(idx.device)
@@ -425,7 +434,7 @@ class SpikeFlowSupervision(FlowCache):
             return None
         target = uv_ref + sample_map(flow, uv_ref)
         uv_t, _ = project(inner_only_positions(model, tq, idx), self.viewmat, self.K)
-        loss = projected_flow_loss(uv_t, target, float(self.cfg.spike_flow_beta))
+        loss = projected_flow_loss(uv_t, target, float(BETA))
         with torch.no_grad():
             res = float(torch.linalg.vector_norm(uv_t - target, dim=-1).mean())
         self.last = {"gaussians": int(idx.numel()), "residual_px": res, "t_ref": t_ref, "t": tq}
@@ -437,17 +446,18 @@ def spike_flow_factory(trainer) -> list:
     trajectories and a spike loss (whose between-frame instants it uses); nothing otherwise."""
     cfg = trainer.cfg
     guid = spike_view_guidance(trainer)
-    if cfg.spike_flow_weight <= 0 or guid is None:
+    if cfg.spike_flow.weight <= 0 or guid is None:
         return []
     stream = guid.stream
-    if "trajectory" not in cfg.motion or stream is None or stream.c2w is None or stream.intrinsics is None:
+    if ("trajectory" not in cfg.motion.representation or stream is None or stream.c2w is None
+            or stream.intrinsics is None):
         return []
     term = SpikeFlowSupervision(trainer, guid)
     trainer.spike_flow = term
     hooks = getattr(trainer, "post_step_hooks", None)
     if hooks is not None:
         hooks.append(term.after_step)
-    return [LossTerm("spike_flow", float(cfg.spike_flow_weight), term, stages=("deform",))]
+    return [LossTerm("spike_flow", float(cfg.spike_flow.weight), term, stages=("deform",))]
 
 
 def close_flow_worker(trainer) -> None:

@@ -35,6 +35,16 @@ from .spike_flow_pairs import RecentGreys, warm_flow_pair
 
 __all__ = ["GRAY_CACHE", "FLOW_DTYPE", "WORKER_NICE", "FlowCache"]
 
+# the spike view's grey images: TFP over GRAY_WINDOW spike frames; FLOW_STEPS between instants per RGB
+# interval with a cached flow; DIS on the grey images upsampled UPSAMPLE times (1 loses on all six runs);
+# forward-backward tolerance FB_TOL (spike px, + 10 % of |flow|); PREFETCH RGB intervals beyond the
+# admitted time computed ahead by the worker thread (0: each in the step that first needs it; same flows).
+# docs/experiments/spike-flow.md
+GRAY_WINDOW = 128
+FLOW_STEPS = 15
+UPSAMPLE = 2
+FB_TOL = 0.5
+PREFETCH = 2
 GRAY_CACHE = 64  # grey images the flow term keeps (spike_flow_pairs.RecentGreys); a miss recomputes one
 FLOW_DTYPE = torch.float16  # cached flows (every pair is kept for the run; README "The guided step's per-run work")
 # the prefetch worker's nice increment: it computes on what the step leaves idle (background.PriorityWorker)
@@ -50,7 +60,7 @@ class FlowCache:
         self._gray = RecentGreys(self._make_gray, GRAY_CACHE)
         self._flows: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
         self._warm: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # chain ends (spike_flow_warm)
-        ahead = int(getattr(self.cfg, "spike_flow_prefetch", 0))
+        ahead = int(PREFETCH)
         self._ahead = ahead
         self._worker = PriorityWorker("bt4d-flow-prefetch", nice=WORKER_NICE) if ahead > 0 else None
         self._stopping = False  # close_flows: the worker's chain stops before its next pair
@@ -66,7 +76,7 @@ class FlowCache:
 
     def _make_gray(self, k: int) -> np.ndarray:
         return spike_to_gray(self.stream, self.stream.t0 + k / self.stream.rate_hz, self.guidance.sensor,
-                             method="tfp", window=int(self.cfg.spike_flow_window))
+                             method="tfp", window=int(GRAY_WINDOW))
 
     def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
         """(flow ref -> t float16 [h, w, 2], valid uint8 [h, w, 1]; sample_map reads both as float32)
@@ -103,7 +113,7 @@ class FlowCache:
         without a worker). Returns the last interval queued (-1: none)."""
         if self._worker is None or len(self.times) < 2:
             return self._queued
-        n1 = max(1, int(self.cfg.spike_flow_steps)) + 1
+        n1 = max(1, int(FLOW_STEPS)) + 1
         k_adm = max((i for i, v in enumerate(self.times[:-1]) if v <= admitted + 1e-9), default=0)
         last = min(len(self.times) - 2, k_adm + self._ahead)
         for k in range(self._queued + 1, last + 1):
@@ -131,14 +141,14 @@ class FlowCache:
     def grid_step(self, t: float) -> tuple[float, float, int, int]:
         """(a, b, q, n + 1): ``t``'s RGB interval [a, b] and its nearest grid index q, not clamped."""
         k = max(i for i, v in enumerate(self.times) if v <= t)  # ts[0] < t < ts[-1]
-        a, b, n1 = self.times[k], self.times[k + 1], max(1, int(self.cfg.spike_flow_steps)) + 1
+        a, b, n1 = self.times[k], self.times[k + 1], max(1, int(FLOW_STEPS)) + 1
         return a, b, int(round((t - a) / (b - a) * n1)), n1
 
     def warm_from(self, t_ref: float, t: float) -> tuple[float | None, bool]:
         """(the grid instant one step from ``t`` towards ``t_ref`` (an end of ``t``'s RGB
         interval) whose flow warm-starts ``t``'s, or None at the first step, off the grid or
         with ``spike_flow_warm`` off; whether a later step will start from ``t``'s flow)."""
-        if not self.cfg.spike_flow_warm or not self.times or not self.times[0] < t < self.times[-1]:
+        if not self.cfg.spike_flow.warm or not self.times or not self.times[0] < t < self.times[-1]:
             return None, False
         a, b, q, n1 = self.grid_step(t)
         if self.frame_of(a + (b - a) * q / n1) != self.frame_of(t) or t_ref not in (a, b):
@@ -150,9 +160,9 @@ class FlowCache:
     def estimate(self, t_ref: float, t: float, init: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flow [h, w, 2], valid bool [h, w], backward flow [h, w, 2]) from the spike stream,
         warm-started from ``init`` (forward, backward) when given (the oracle script
-        ``scripts/spike_flow_oracle.py`` replaces this with the ground-truth motion). On the
+        a one-off study replaced this with the ground-truth motion). On the
         prefetch worker both flows run on its own low-priority thread, not the pair thread."""
         on_worker = self._worker is not None and self._worker.on_worker()
-        fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, upsample=int(self.cfg.spike_flow_upsample),
-                                    tol_px=float(self.cfg.spike_flow_fb_tol), parallel=False if on_worker else None)
+        fw, bw, ok = warm_flow_pair(self.gray(t_ref), self.gray(t), init, upsample=int(UPSAMPLE),
+                                    tol_px=float(FB_TOL), parallel=False if on_worker else None)
         return fw, ok, bw

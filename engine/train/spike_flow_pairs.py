@@ -6,7 +6,7 @@ the forward-backward check that keeps the pixels where they agree. A **warm star
 starts both flows from a pair computed one step closer in time, so a large displacement is
 found as a chain of small refinements while each flow still compares the two images
 themselves (no error accumulates as in chaining flows end to end). Measured on the fast
-scene's ball (~27 spike px per RGB interval, its grey texture faint; scripts/spike_flow_objects.py,
+scene's ball (~27 spike px per RGB interval, its grey texture faint; measured per object,
 the 15 grid instants of every interval against the ground-truth motion of its visible surface
 points): at the far half of an interval the end-point error on pixels that pass the check is
 5.8 px with the warm start against 14.6 px from zero (|motion| 16-17 px), 80 % of them pass

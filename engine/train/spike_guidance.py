@@ -19,7 +19,7 @@
   with ``rgb_only`` the trainer never calls it; without a spike stream it returns nothing
   (no flag needed): such captures train exactly as the RGB-only model.
 
-Every option is a :class:`engine.train.presets.TrainConfig` field (older run configs get
+Every option is a :class:`engine.train.config.TrainConfig` field (older run configs get
 the defaults of newer fields through ``TrainConfig.from_dict``).
 """
 from __future__ import annotations
@@ -33,19 +33,25 @@ from ..scene.fine_deformation import SpikeFineEncoder, project_to_grid
 from ..scene.model import scaled_view
 from ..spike.features import SpikeWindowCache, bracket
 from ..spike.render import SpikeRenderer, cumulative_spike_loss, estimate_sensor, spike_count_loss
+from .config import block_weight
 from .instants import InstantSampler
 from .interpolation import avg_pool_blocks, block_colour_loss, flow_consistency, flow_interpolate, linear_blend
-from .losses import LossTerm
-from .presets import block_weight
-from .spike_crop import crop_box, crop_fraction, crop_view
+from .losses import BLOCK_SIZE, LossTerm
 
 __all__ = ["SpikeGuidance", "admitted_time", "guidance_factory", "make_fine_encoder", "spike_stream_info",
            "spike_view_guidance"]
 
 # No term reads the between-frame render's depth: without it the rasterizer composites 3
 # feature channels instead of 4, with the same colours and gradients bit for bit (issue 13;
-# tests/test_spike_crop.py). tools/bench-step's ``guided-main`` variant sets it back.
+# tests/test_between_render.py). tools/bench-step's ``guided-main`` variant sets it back.
 BETWEEN_DEPTH = False
+
+LR_FINE = 1e-3           # learning rate of the fine branch
+CHANGE_BLOCK = 4         # block size (spike pixels) of the change maps
+# the spike windows' conv encoder output kept (EncodedWindows): 1 = one pass per window and weights
+# (the renders of a step share it; exact), k > 1 = a window's encoder runs at most every k steps, its
+# tokens reused detached in between; 0 = no reuse
+FINE_ENCODER_EVERY = 1
 
 
 def spike_stream_info(capture):
@@ -63,7 +69,7 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
     ``cache``: reuse already computed spike windows (same stream and RGB times)."""
     cfg = trainer.cfg
     info = spike_stream_info(trainer.capture)
-    if info is None or not cfg.fine_deformation:
+    if info is None or not cfg.spike.fine_deformation:
         return None
     stream = info.open()
     cam = info.co_located_with
@@ -77,10 +83,10 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
             "width": int(stream.width), "height": int(stream.height)}
     spec = {"capture": str(Path(trainer.capture.root).resolve()), "stream_camera": info.camera,
             "rgb_times": rgb_times, "coverage": [float(stream.t0), float(stream.t_end)],
-            "k_sub": int(cfg.fine_k_sub), "d_model": int(cfg.fine_d_model),
-            "channels": int(cfg.fine_channels), "per_gaussian": bool(cfg.fine_per_gaussian),
-            "frozen_encoder": bool(cfg.fine_frozen_encoder), "encoder_every": int(cfg.fine_encoder_every),
-            "change_gate": bool(cfg.fine_change_gate), "change_block": int(cfg.spike_change_block),
+            "k_sub": int(cfg.spike.fine_k_sub), "d_model": int(cfg.spike.fine_d_model),
+            "channels": int(cfg.spike.fine_channels), "per_gaussian": bool(cfg.spike.fine_per_gaussian),
+            "frozen_encoder": bool(cfg.spike.fine_frozen_encoder), "encoder_every": int(FINE_ENCODER_EVERY),
+            "change_gate": bool(cfg.spike.fine_change_gate), "change_block": int(CHANGE_BLOCK),
             "bounds_min": field.bounds_min.tolist(), "bounds_max": field.bounds_max.tolist(), "view": view}
     enc = SpikeFineEncoder(field.feature_dim, spec).to(field.bounds_min.device)
     if cache is None or cache.k_sub != spec["k_sub"] or list(cache.rgb_times) != rgb_times:
@@ -120,20 +126,20 @@ class SpikeGuidance:
         self.renderer = None
         self.sensor = None
         self._spikes = None
-        if self.stream is not None and cfg.spike_loss_weight > 0:
+        if self.stream is not None and cfg.spike.loss_weight > 0:
             self.sensor = estimate_sensor(cap, self.stream)
             self.renderer = SpikeRenderer(self.sensor)
             if self.stream.num_frames * self.stream.width * self.stream.height <= 256 * 2 ** 20:
                 self._spikes = self.stream.read(0, self.stream.num_frames)
         self._flows: dict = {}
         self._consistency: dict = {}  # occlusion maps of each flow pair (flow_consistency)
-        if block_weight(cfg) > 0 and cfg.block_interp == "flow":
+        if block_weight(cfg) > 0 and cfg.spike.block_interp == "flow":
             self.precompute_flows()
         self.rng = np.random.default_rng(trainer.seed + 17)
         self._window_cache: SpikeWindowCache | None = None
         self.change = None
         self.skipped_intervals = 0
-        if self.stream is not None and cfg.spike_skip_static:
+        if self.stream is not None and cfg.spike.skip_static:
             self.skip_static_windows()
 
     # --- skipping spike windows without change (engine.spike.change) --------------------------
@@ -142,7 +148,7 @@ class SpikeGuidance:
         if self._window_cache is None and self.stream is not None:
             rgb_times = sorted({float(f.time) for f in self.real_frames if f.camera == self.colocated})
             if len(rgb_times) >= 2:
-                self._window_cache = SpikeWindowCache(self.stream, rgb_times, k_sub=int(self.cfg.fine_k_sub))
+                self._window_cache = SpikeWindowCache(self.stream, rgb_times, k_sub=int(self.cfg.spike.fine_k_sub))
         return self._window_cache
 
     def skip_static_windows(self) -> None:
@@ -151,7 +157,7 @@ class SpikeGuidance:
         cache = self.window_cache()
         if cache is None:
             return
-        self.change = cache.change(int(self.cfg.spike_change_block))
+        self.change = cache.change(int(CHANGE_BLOCK))
         active = set(self.change.active_intervals.tolist())
         def keep(sampler):
             ks = [k for k in sampler.intervals.tolist()
@@ -169,7 +175,7 @@ class SpikeGuidance:
         field = tr.model.deformation if tr.model is not None else None
         if field is None or not tr.model.use_deformation or tr.deform_opt is None:
             return
-        if self.cfg.spike_static_prior and tr.model.static_prior is None:
+        if self.cfg.spike.static_prior and tr.model.static_prior is None:
             tr.model.static_prior = self.static_prior()
         if field.fine_encoder is None and getattr(field, "fine_spec", None) is not None:
             field.restore_fine_encoder()  # resumed checkpoint: spec + pending weights
@@ -186,7 +192,7 @@ class SpikeGuidance:
             return
         params = [p for p in field.fine_encoder.parameters() if p.requires_grad]
         if params:
-            tr.add_deformation_parameters(params, self.cfg.lr_fine, name="fine")
+            tr.add_deformation_parameters(params, LR_FINE, name="fine")
 
     def static_prior(self):
         """``(canonical means [N,3]) -> bool [N]`` for ``Model4D.static_prior``: Gaussians in
@@ -197,7 +203,7 @@ class SpikeGuidance:
         cache = self.window_cache()
         if cache is None or self.stream is None or self.stream.c2w is None or self.stream.intrinsics is None:
             return None
-        change = cache.change(int(self.cfg.spike_change_block))
+        change = cache.change(int(CHANGE_BLOCK))
         view = self.stream.view(0.0)
         vm = torch.as_tensor(view.viewmat, dtype=torch.float32)
         K = torch.as_tensor(self.stream.intrinsics.K, dtype=torch.float32)
@@ -255,7 +261,7 @@ class SpikeGuidance:
         items = self.trainer.items
         a, b = items[ia]["image"][0], items[ib]["image"][0]
         eps = (t - t1) / (t2 - t1)
-        if self.cfg.block_interp == "linear":
+        if self.cfg.spike.block_interp == "linear":
             return linear_blend(a, b, eps)[None]
         key = (ia, ib)
         if key not in self._flows:
@@ -301,14 +307,14 @@ class SpikeGuidance:
         if cache != "unset":
             return cache
         ctx.__dict__["_between"] = None
-        every = int(self.cfg.between_every)
+        every = int(self.cfg.spike.between_every)
         if ctx.stage != "deform" or every <= 0 or ctx.step % every != 0:
             return None
         self.ensure_fine(ctx.trainer)
         use_spike = self.renderer is not None and self.spike_sampler is not None and self.spike_sampler.has_between
         window = getattr(ctx.trainer, "time_window", None)
-        max_time = window(ctx.step) if callable(window) and self.cfg.between_curriculum else None
-        if use_spike and self.colocated in self.by_cam and self.rng.random() < self.cfg.between_colocated_p:
+        max_time = window(ctx.step) if callable(window) and self.cfg.spike.between_curriculum else None
+        if use_spike and self.colocated in self.by_cam and self.rng.random() < self.cfg.spike.between_colocated_p:
             cam = self.colocated
             inst = self.spike_sampler.between_instant(max_time=max_time)
         else:
@@ -320,35 +326,14 @@ class SpikeGuidance:
         if inst is None:  # the time curriculum has not opened any interval yet
             return None
         item = ctx.trainer.items[self.by_cam[cam][0]]
-        vt = scaled_view(item, float(self.cfg.between_scale))
+        vt = scaled_view(item, float(self.cfg.spike.between_scale))
         vt["time"] = inst.time
         scale = vt["width"] / item["width"]
-        box = self.spike_box(vt, inst.time) if cam == self.colocated else None
-        if box is not None:  # render pixels per sensor pixel: a whole number (spike_crop.crop_box)
-            r = vt["width"] // self.sensor.width
-            vt = crop_view(vt, tuple(v * r for v in box))
         rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
-                                                           motion_only=bool(self.cfg.between_motion_only))
-        out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta, "box": box}
+                                                           motion_only=bool(self.cfg.spike.between_motion_only))
+        out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta}
         ctx.__dict__["_between"] = out
         return out
-
-    def spike_box(self, vt: dict, t: float) -> tuple[int, int, int, int] | None:
-        """The box of sensor pixels (x0, y0, x1, y1) that a between-frame render at the spike
-        camera at ``t`` is cropped to (engine.train.spike_crop), or None for the full view:
-        ``spike_crop`` off, no spike loss, or the block colour loss on (it pools the whole view)."""
-        if not self.cfg.spike_crop or self.sensor is None or block_weight(self.cfg) > 0:
-            return None
-        cache = self.window_cache()
-        if cache is None:
-            return None
-        key = (bracket(cache.rgb_times, float(t))[0], int(vt["width"]), int(vt["height"]))
-        boxes = self.__dict__.setdefault("_boxes", {})
-        if key not in boxes:
-            change = cache.change(int(self.cfg.spike_change_block))
-            boxes[key] = crop_box(change, key[0], (int(self.sensor.width), int(self.sensor.height)), key[1:],
-                                  dilate=int(self.cfg.spike_crop_dilate), max_frac=float(self.cfg.spike_crop_max_frac))
-        return boxes[key]
 
     def colocated_between(self, ctx) -> dict | None:
         """This step's between-frame render (:meth:`between`) when it was made at the spike
@@ -371,24 +356,17 @@ def _spike_term(guid: SpikeGuidance):
         b = guid.colocated_between(ctx)
         if b is None or guid.renderer is None:
             return None
-        m = int(guid.cfg.spike_window)
+        m = int(guid.cfg.spike.window)
         counts, frames, n = guid.observed(b["instant"].time, m)
         if n == 0:
             return None
         img = b["rgb"][0].clamp(0, 1)
-        # a cropped render (spike_crop): the loss over the box's pixels divided by the whole
-        # view's, so each of them gets the full-view loss's gradient
-        box = b.get("box")
-        share = crop_fraction(box, (guid.sensor.width, guid.sensor.height))
-        scale = max(guid.sensor.scale, 1e-6) / share
-        if box is not None:
-            x0, y0, x1, y1 = box
-            counts, frames = counts[y0:y1, x0:x1], frames[:, y0:y1, x0:x1]
-        if guid.cfg.spike_loss_mode == "if":
-            spikes = guid.renderer.render_spikes(img, n, box=box)
+        scale = max(guid.sensor.scale, 1e-6)
+        if guid.cfg.spike.loss_mode == "if":
+            spikes = guid.renderer.render_spikes(img, n)
             obs_spikes = torch.as_tensor(np.ascontiguousarray(frames), device=img.device)
             return cumulative_spike_loss(spikes, obs_spikes) / scale
-        pred = guid.renderer.render_counts(img, n, box=box)
+        pred = guid.renderer.render_counts(img, n)
         obs = torch.as_tensor(np.ascontiguousarray(counts), device=img.device)
         return spike_count_loss(pred, obs, n) / scale
     return fn
@@ -399,7 +377,7 @@ def _block_term(guid: SpikeGuidance):
         b = guid.between(ctx)
         if b is None:
             return None
-        k = int(guid.cfg.block_size)
+        k = int(BLOCK_SIZE)
         target = guid.pooled_target(b["camera"], b["instant"].time, k)
         if target is None:
             return None
@@ -418,7 +396,7 @@ def _fine_term(guid: SpikeGuidance):
 
 
 def _tick_fine(tr, step, item, meta) -> None:
-    """Post-step hook: one step done for the fine encoder's kept windows (``fine_encoder_every``)."""
+    """Post-step hook: one step done for the fine encoder's kept windows (``FINE_ENCODER_EVERY``)."""
     field = tr.model.deformation if tr.model is not None else None
     enc = getattr(field, "fine_encoder", None)
     if isinstance(enc, SpikeFineEncoder):
@@ -438,7 +416,7 @@ def spike_view_guidance(trainer) -> SpikeGuidance | None:
     and ``spike_loss_weight > 0``): what the terms riding on those renders (the along-ray
     prior, the spike-view flow) need; None otherwise."""
     guid = getattr(trainer, "spike_guidance", None)
-    if guid is None or guid.renderer is None or trainer.cfg.spike_loss_weight <= 0:
+    if guid is None or guid.renderer is None or trainer.cfg.spike.loss_weight <= 0:
         return None
     return guid
 
@@ -459,8 +437,8 @@ def guidance_factory(trainer) -> list:
         terms = []
     else:
         terms = [LossTerm("fine_attach", 1.0, _fine_term(guid), stages=("deform",))]
-    if guid.renderer is not None and cfg.spike_loss_weight > 0:
-        terms.append(LossTerm("spike", float(cfg.spike_loss_weight), _spike_term(guid), stages=("deform",)))
+    if guid.renderer is not None and cfg.spike.loss_weight > 0:
+        terms.append(LossTerm("spike", float(cfg.spike.loss_weight), _spike_term(guid), stages=("deform",)))
     if block_weight(cfg) > 0:
         terms.append(LossTerm("block_colour", block_weight(cfg), _block_term(guid),
                               stages=("deform",)))

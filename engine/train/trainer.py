@@ -15,7 +15,7 @@ factories in :data:`LOSS_FACTORIES` (the spike guidance and its along-ray prior;
 ``rgb_only=True``).
 
 Every schedule reads one clock, :class:`engine.train.schedule.Schedule` (fractions of
-``engine.train.presets``, continuous when a budget run re-plans its total); the loop around
+``engine.train.config``, continuous when a budget run re-plans its total); the loop around
 the trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.run`.
 
 Skipping what a scene does not need (switches of :class:`TrainConfig`, all off by default,
@@ -42,18 +42,22 @@ import torch
 from ..errors import RunError
 from ..geometry.depth_priors import FusionCache, stereo_depth_priors
 from ..geometry.init_points import initial_points
-from ..scene.deformation import make_field
+from ..scene.deformation import (
+    LR_GRID_FINAL,
+    LR_MLP_FINAL,
+    TIME_CELLS_PER_FRAME,
+    TIME_CELLS_PER_FRAME_GUIDED,
+    make_field,
+)
 from ..scene.gaussians import GaussianModel
 from ..scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
 from ..scene.trajectory import extrapolate_junctions, gradient_sink
-from .along_ray import along_ray_factory
-from .between_rigidity import between_rigidity_factory
+from .config import TrainConfig, block_weight
 from .culling import FrustumCuller
 from .early_stop import EarlyStop, hold_back_frames
 from .freezing import TrainFreezer
-from .geometry_losses import geometry_post_step_hooks, step_background
+from .geometry_losses import geometry_post_step_hooks
 from .losses import MOTIONS, LossTerm, StepContext, default_loss_terms, frame_item_fields, renders_at_instants_only
-from .presets import TrainConfig, block_weight
 from .quiet_curves import quiet_curves_factory
 from .schedule import Schedule
 from .spike_flow import spike_flow_factory
@@ -63,8 +67,9 @@ from .spike_guidance import guidance_factory, spike_stream_info
 # guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the along-ray prior,
 # the spike-view flow term and the quiet-curves hook (after the flow fit; issue 11) ride on its between instants.
 LossFactory = Callable[["Trainer"], "list[LossTerm] | None"]
-LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, along_ray_factory, between_rigidity_factory,
-                                           spike_flow_factory, quiet_curves_factory)
+LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, spike_flow_factory, quiet_curves_factory)
+
+PRUNE_BIG_WORLD = 0.2  # densification prunes Gaussians whose largest scale exceeds this x extent (3DGS)
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -132,15 +137,15 @@ class Trainer:
         self.fusion_cache = FusionCache(capture)  # one SGBM fusion for init points, depth priors, flow carry
         self.seed = int(seed)
         self.rgb_only = bool(rgb_only)
-        self.total_steps = int(total_steps or cfg.iterations)
+        self.total_steps = int(total_steps or cfg.schedule.iterations)
         frames = train_frames(capture)
         if not frames:
             raise RunError(capture_path(capture) or "capture", "the capture has no train RGB frames")
         # early stopping scores frames held back from training, never the eval frames that
         # every reported metric is computed on (issue 13)
         self.held_back: list = []
-        if cfg.early_stop:
-            frames, self.held_back = hold_back_frames(frames, cfg.early_stop_proxy_frames)
+        if cfg.skip.early_stop:
+            frames, self.held_back = hold_back_frames(frames)
         self.items = []
         for i, f in enumerate(frames):
             vt = view_tensors(capture.view(f), self.device)
@@ -153,9 +158,8 @@ class Trainer:
             vt["camera"] = f.camera
             vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight, mask
             self.items.append(vt)
-        if cfg.lambda_depth > 0:  # issue 14: fused SGBM depth at every RGB instant
-            priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache,
-                                         planes=cfg.depth_prior_planes)
+        if cfg.losses.depth > 0:  # issue 14: fused SGBM depth at every RGB instant
+            priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
             self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
             for f, it in zip(frames, self.items):
                 if id(f) in priors and priors[id(f)][1].sum() >= 16:
@@ -185,16 +189,16 @@ class Trainer:
         self._carried_to = -math.inf  # latest frame time whose motion was carried forward
         self.carry_info: list[dict] = []  # trajectories carried by scene flow (traj_carry="flow")
         # skipping: owned by the trainer, checkpointed in state()
-        self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.freeze_static else None
-        self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.early_stop else None
-        self.cull: FrustumCuller | None = FrustumCuller() if cfg.cull_frustum else None
+        self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.skip.freeze_static else None
+        self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.skip.early_stop else None
+        self.cull: FrustumCuller | None = FrustumCuller() if cfg.skip.cull_frustum else None
 
     # ---- schedule: every one reads one clock, continuous under budget re-plans (engine.train.schedule) ----
     total_steps = property(lambda self: self.schedule.total,
                            lambda self, n: setattr(self, "schedule", Schedule.plan(n)),
                            doc="Real steps planned; setting it plans afresh (mid-run re-plans: schedule.replan)")
 
-    static_steps = property(lambda self: self.schedule.static_steps(self.cfg.static_fraction))
+    static_steps = property(lambda self: self.schedule.static_steps(self.cfg.schedule.static_fraction))
 
     def stage_of(self, step: int) -> str:
         return "static" if step < self.static_steps else "deform"
@@ -202,19 +206,19 @@ class Trainer:
     def time_window(self, step: int) -> float:
         """Latest capture time trained on at ``step`` (time curriculum of the deformation stage).
 
-        The static warm-up sees the first RGB instant only (``static_frames="first"``, the
-        canonical scene is the scene at t0) or every frame (``"all"``). The deformation stage
+        The static warm-up sees the first RGB instant only (the canonical scene is the scene at
+        t0; warming up on every frame was measured and dropped). The deformation stage
         then widens the window from t0 to the last frame over ``time_curriculum`` of its steps,
         so each newly admitted frame starts from the motion of the frames before it (fast
         objects move less than their size between neighbouring frames, so gradients find them).
         """
         t0, t1 = self.frame_times[0], self.frame_times[-1]
         if self.stage_of(step) == "static":
-            return t0 if self.cfg.static_frames == "first" and self.cfg.static_fraction < 1.0 else t1
-        if self.cfg.time_curriculum <= 0:
+            return t0 if self.cfg.schedule.static_fraction < 1.0 else t1
+        if self.cfg.schedule.time_curriculum <= 0:
             return t1
-        p = self.schedule.deform_progress(step, self.cfg.static_fraction)
-        return t0 + (t1 - t0) * min(1.0, p / self.cfg.time_curriculum)
+        p = self.schedule.deform_progress(step, self.cfg.schedule.static_fraction)
+        return t0 + (t1 - t0) * min(1.0, p / self.cfg.schedule.time_curriculum)
 
     def frame_pool(self, step: int) -> list[int]:
         t_max = self.time_window(step) + 1e-9
@@ -233,9 +237,9 @@ class Trainer:
     def init_model(self) -> None:
         torch.manual_seed(self.seed)
         cfg = self.cfg
-        pts = initial_points(self.capture, cfg.init, max_points=cfg.init_max_points, n_random=cfg.init_random_points,
-                             seed=self.seed, fill_stride=cfg.init_fill_stride, backdrop=cfg.init_backdrop,
-                             fusion_cache=self.fusion_cache, planes=cfg.init_planes)
+        pts = initial_points(self.capture, cfg.init.method, max_points=cfg.init.max_points,
+                             n_random=cfg.init.random_points, seed=self.seed, backdrop=cfg.init.backdrop,
+                             fusion_cache=self.fusion_cache, planes=cfg.init.planes)
         self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
         if getattr(self, "depth_prior_note", None):
             self.init_info["depth_prior_unavailable"] = self.depth_prior_note
@@ -246,10 +250,11 @@ class Trainer:
         # with a backdrop, the deformation field's bounds come from the Gaussians inside the box
         # of the points that are not backdrop (None without one: bounds as before, bit-identical)
         self.field_box = None if core is pts.xyz else (core.min(0).tolist(), core.max(0).tolist())
-        g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity, device=self.device)
-        g.instants_only = renders_at_instants_only(cfg, self.items, self.rgb_only)  # lazy curves: lazy_rgb_only
-        g.setup_optimizer(cfg, self.extent)
-        self.model = Model4D(g, None, background=cfg.background, near_plane=near_plane_for_extent(self.extent))
+        g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.gaussians.sh_degree, init_opacity=cfg.gaussians.init_opacity,
+                          device=self.device)
+        g.instants_only = renders_at_instants_only(cfg, self.items, self.rgb_only)  # lazy curves: LAZY_RGB_ONLY
+        g.setup_optimizer(cfg.gaussians, self.extent)
+        self.model = Model4D(g, None, background=cfg.losses.background, near_plane=near_plane_for_extent(self.extent))
         self.model.use_deformation = False
         self._watch_gaussians()
 
@@ -268,24 +273,25 @@ class Trainer:
         g._replace = _replace
 
     def start_deformation(self) -> None:
-        """Start the motion of ``cfg.motion``: per-Gaussian trajectories (issue 11,
+        """Start the motion of ``cfg.motion.representation``: per-Gaussian trajectories (issue 11,
         engine.scene.trajectory) and / or the deformation field around the current canonical
         Gaussians (with both, the field is a residual on top of the trajectories)."""
-        motion = self.cfg.motion
+        motion = self.cfg.motion.representation
         if motion not in MOTIONS:
             raise ValueError(f"unknown motion representation {motion!r}; choose one of {', '.join(MOTIONS)}")
         self.model.use_deformation = True
         if "trajectory" in motion:
-            self.model.add_trajectories(self.frame_times, self.cfg.lr_traj * self.extent, self.cfg.lr_traj_quats)
+            self.model.add_trajectories(self.frame_times, self.cfg.motion.lr_traj * self.extent,
+                                        self.cfg.motion.lr_traj_quats)
         if "hexplane" not in motion:
             return
         g = self.model.gaussians
         means = g.means.detach().cpu().numpy()
         lo, hi = robust_bounds(inside_box(means, self.field_box))
-        cfg = self.cfg
-        if self.between_supervised():  # spike / block colour losses constrain the field between frames
-            cfg = cfg.replace(time_resolution_per_frame=cfg.spike_time_resolution_per_frame)
-        field = make_field(cfg, lo, hi, self.time_range, self.frame_times, seed=self.seed).to(self.device)
+        # spike / block colour losses constrain the field between frames: finer time cells
+        per_frame = TIME_CELLS_PER_FRAME_GUIDED if self.between_supervised() else TIME_CELLS_PER_FRAME
+        field = make_field(self.cfg.hexplane, lo, hi, self.time_range, self.frame_times, seed=self.seed,
+                           time_cells_per_frame=per_frame).to(self.device)
         self.model.deformation = field
         self.model.use_deformation = True
         self._make_deform_opt()
@@ -305,12 +311,12 @@ class Trainer:
             return False
         if spike_stream_info(self.capture) is None:  # no spikes: plain RGB training, no flag needed
             return False
-        return self.cfg.spike_loss_weight > 0 or block_weight(self.cfg) > 0
+        return self.cfg.spike.loss_weight > 0 or block_weight(self.cfg) > 0
 
     def _make_deform_opt(self) -> None:
         d = self.model.deformation
-        groups = [{"params": d.grid_parameters(), "lr": self.cfg.lr_grid, "name": "grid"},
-                  {"params": d.mlp_parameters(), "lr": self.cfg.lr_mlp, "name": "mlp"}]
+        groups = [{"params": d.grid_parameters(), "lr": self.cfg.hexplane.lr_grid, "name": "grid"},
+                  {"params": d.mlp_parameters(), "lr": self.cfg.hexplane.lr_mlp, "name": "mlp"}]
         self.deform_opt = torch.optim.Adam(groups, lr=0.0)
 
     def _carry_forward(self, t_max: float) -> None:
@@ -344,14 +350,14 @@ class Trainer:
         knots, g = self.model.trajectory["knots"], self.model.gaussians
         li = int(np.argmin([abs(k - last) for k in knots]))
         g.settle()
-        mode = "velocity" if self.cfg.traj_carry == "flow" else self.cfg.traj_carry
+        mode = "velocity" if self.cfg.motion.carry == "flow" else self.cfg.motion.carry
         extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=mode)
         extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")
         frames = train_frames(self.capture)
-        if self.cfg.traj_carry == "flow" and li + 1 < len(knots):
+        if self.cfg.motion.carry == "flow" and li + 1 < len(knots):
             from .scene_flow import carry_trajectories
             self.carry_info.append(carry_trajectories(self, frames, knots, li, li + 1))
-        if self.cfg.birth_error > 0 and li + 1 < len(knots):
+        if self.cfg.births.error > 0 and li + 1 < len(knots):
             from .births import spawn_at_instant
             spawn_at_instant(self, frames, knots[li + 1])  # records in self.birth_info
 
@@ -363,18 +369,18 @@ class Trainer:
 
     def _update_lrs(self, step: int) -> None:
         self.model.gaussians.update_learning_rate(self.schedule.run_progress(step))
-        p = min(1.0, max(0.0, self.schedule.deform_progress(step, self.cfg.static_fraction, last=1)))
+        p = min(1.0, max(0.0, self.schedule.deform_progress(step, self.cfg.schedule.static_fraction, last=1)))
         if self.model.trajectory is not None:  # decays over the deformation stage, like the field
             for grp in self.model.gaussians.optimizer.param_groups:
                 if grp["name"] == TRAJ_MEANS:
-                    grp["lr"] = self.extent * math.exp(math.log(self.cfg.lr_traj) * (1 - p)
-                                                       + math.log(self.cfg.lr_traj_final) * p)
+                    grp["lr"] = self.extent * math.exp(math.log(self.cfg.motion.lr_traj) * (1 - p)
+                                                       + math.log(self.cfg.motion.lr_traj_final) * p)
         if self.deform_opt is not None:
             for grp in self.deform_opt.param_groups:
                 if grp["name"] == "grid":
-                    grp["lr"] = math.exp(math.log(self.cfg.lr_grid) * (1 - p) + math.log(self.cfg.lr_grid_final) * p)
+                    grp["lr"] = math.exp(math.log(self.cfg.hexplane.lr_grid) * (1 - p) + math.log(LR_GRID_FINAL) * p)
                 elif grp["name"] == "mlp":
-                    grp["lr"] = math.exp(math.log(self.cfg.lr_mlp) * (1 - p) + math.log(self.cfg.lr_mlp_final) * p)
+                    grp["lr"] = math.exp(math.log(self.cfg.hexplane.lr_mlp) * (1 - p) + math.log(LR_MLP_FINAL) * p)
 
     # ---- one iteration --------------------------------------------------------------------
     def step(self, step: int) -> dict:
@@ -384,17 +390,16 @@ class Trainer:
         stage = self.stage_of(step)
         if stage == "deform" and not model.use_deformation:
             self.start_deformation()
-        if cfg.sh_degree > 0 and cfg.sh_step_fraction > 0:
+        if cfg.gaussians.sh_degree > 0 and cfg.gaussians.sh_step_fraction > 0:
             want = self.schedule.sh_degree(step, cfg)
             while g.active_sh_degree < want:
                 g.oneup_sh_degree()
         self._update_lrs(step)
-        if stage == "deform" and self.cfg.time_curriculum > 0:
+        if stage == "deform" and self.cfg.schedule.time_curriculum > 0:
             self._carry_forward(self.time_window(step))
         item = self.items[self.frame_index(step)]
         fine = self.fine_provider(item) if (self.fine_provider is not None and stage == "deform") else None
-        rgb, alpha, meta, attrs = model.render(item, fine=fine,
-                                               background=step_background(cfg, step, self.seed, self.device))
+        rgb, alpha, meta, attrs = model.render(item, fine=fine)
         means2d = meta.get("means2d")
         if means2d is not None and means2d.requires_grad:
             means2d.retain_grad()
@@ -428,12 +433,11 @@ class Trainer:
         info = {}
         if self.schedule.densify_due(step, cfg):
             gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
-            info = g.densify_and_prune(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
-                                       min_opacity=cfg.prune_opacity, max_world_scale=cfg.prune_big_world,
-                                       max_gaussians=cfg.max_gaussians,
+            info = g.densify_and_prune(grad_threshold=cfg.densify.grad_threshold,
+                                       percent_dense=cfg.densify.percent_dense,
+                                       min_opacity=cfg.densify.prune_opacity, max_world_scale=PRUNE_BIG_WORLD,
+                                       max_gaussians=cfg.densify.max_gaussians,
                                        generator=gen if self.device.type == "cpu" else None)
-        if cfg.opacity_reset_every and step > 0 and step % cfg.opacity_reset_every == 0 and dense:
-            g.reset_opacity()
         if self.cull is not None and (step == 0 or (stage == "deform" and self.stage_of(step - 1) == "static") or info):
             self.cull(self, step)
         if self.freeze is not None and stage == "deform":  # prediction module (periodic motion checks)
@@ -481,7 +485,7 @@ class Trainer:
         self.field_box = state.get("field_box")
         self.init_info = state.get("init", {})
         self._carried_to = float(state.get("carried_to", -math.inf))
-        self.model = Model4D.from_state(state["model"], self.cfg, device=self.device)
+        self.model = Model4D.from_state(state["model"], self.cfg.gaussians, device=self.device)
         if self.model.deformation is not None:
             self._make_deform_opt()
             for hook in self.deformation_hooks:

@@ -2,10 +2,10 @@
 labelled strip of frames and a per-frame coverage table (issue 14).
 
     make demo                                         # or: python -m engine demo --out runs/demo
-    nice -n 10 .venv/bin/python scripts/orbit_strip.py --run runs/demo
+    nice -n 10 .venv/bin/python tools/orbit_strip.py --run runs/demo
 
 Runs with the ``bpy`` module from the venv (or ``blender --background --python
-scripts/orbit_strip.py -- --run ...``), through the add-on's own operators, as a user would:
+tools/orbit_strip.py -- --run ...``), through the add-on's own operators, as a user would:
 
 1. ``bpy.ops.bt4d.import_capture``  the capture's cameras (the stereo pair) and resolution
 2. ``bpy.ops.bt4d.load_result``     the run as animated Gaussians

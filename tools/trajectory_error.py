@@ -6,7 +6,7 @@ capture's optional ground truth (``transforms.json`` -> ``ground_truth.objects``
 with ``times`` [T], per object ``<name>`` [T, 4, 4] object-to-world and ``<name>_points``
 [P, 3] surface samples in object space; written by ``scripts/make_capture.py``)::
 
-    .venv/bin/python scripts/trajectory_error.py CAPTURE RUN [RUN ...] [--per-interval 4] [--json OUT]
+    .venv/bin/python tools/trajectory_error.py CAPTURE RUN [RUN ...] [--per-interval 4] [--json OUT]
 
 Method: at the first RGB instant ``t0`` a Gaussian (opacity > 0.1) belongs to the object
 whose surface samples lie within ``--radius`` (default: 3x the samples' median spacing) of
@@ -26,8 +26,8 @@ means and medians.
 
 Also ``wobble_mm``: how far the distance from the spike camera ``rho = |x - c|`` of each such
 Gaussian departs between frames from the cubic Hermite curve (Catmull-Rom tangents) through
-its own ``rho`` at the RGB instants -- the in-between along-ray motion that the along-ray
-prior (``lambda_along_ray``, engine/train/along_ray.py) penalises -- and ``gt_wobble_mm``,
+its own ``rho`` at the RGB instants -- the in-between motion along the spike camera's rays,
+which the spike view cannot see (docs/experiments/spike-flow.md) -- and ``gt_wobble_mm``,
 the same for the true positions (what that curve cannot follow of the real motion).
 
 And ``phase_mm``: the mean |error| (3D, same weights) by place in the RGB interval, first at the
@@ -107,21 +107,23 @@ def assign(positions: np.ndarray, truth: dict, t0: float, radius: float | None =
 
 
 def hermite_curve(rgb_times, values, t: float) -> np.ndarray:
-    """Cubic Hermite (Catmull-Rom tangents) through ``values`` [F] x [N] at ``rgb_times`` [F],
-    at ``t``: engine.train.along_ray.along_ray_target over the whole capture."""
-    import torch
-
-    from engine.train.along_ray import along_ray_target
-
+    """Cubic Hermite (Catmull-Rom tangents) through ``values`` [F] x [N] at ``rgb_times`` [F], at
+    ``t``; one-sided differences at the capture's first and last interval."""
+    rgb_times = np.asarray(rgb_times, dtype=np.float64)
     k = int(np.clip(np.searchsorted(rgb_times, t, side="right") - 1, 0, len(rgb_times) - 2))
-    keys = {"a": k, "b": k + 1}
-    if k >= 1:
-        keys["prev"] = k - 1
-    if k + 2 < len(rgb_times):
-        keys["next"] = k + 2
-    out = along_ray_target({n: rgb_times[i] for n, i in keys.items()},
-                           {n: torch.as_tensor(values[i], dtype=torch.float64) for n, i in keys.items()}, t)
-    return out.numpy()
+    ta, tb = rgb_times[k], rgb_times[k + 1]
+    h = tb - ta
+    if h <= 0:
+        raise ValueError(f"RGB instants must increase: {ta} .. {tb}")
+    s = min(1.0, max(0.0, (float(t) - ta) / h))
+    ra, rb = np.asarray(values[k], np.float64), np.asarray(values[k + 1], np.float64)
+    slope = (rb - ra) / h
+    ma = (rb - np.asarray(values[k - 1], np.float64)) / (tb - rgb_times[k - 1]) if k >= 1 else slope
+    mb = ((np.asarray(values[k + 2], np.float64) - ra) / (rgb_times[k + 2] - ta)
+          if k + 2 < len(rgb_times) else slope)
+    s2, s3 = s * s, s * s * s
+    h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
+    return h00 * ra + h10 * h * ma + h01 * rb + h11 * h * mb
 
 
 def trajectory_errors(positions_at, opacities: np.ndarray, truth: dict, rgb_times, spike_view, *,

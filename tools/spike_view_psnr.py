@@ -8,7 +8,7 @@ spike resolution) at every ``--stride``-th light sample, converted to linear lum
 compared with the linear light that ``scripts/make_capture.py --light-cache FILE`` rendered
 for the spike simulation (both sRGB-encoded for the metric, as the eval PSNR is)::
 
-    .venv/bin/python scripts/spike_view_psnr.py CAPTURE LIGHT.npz RUN [RUN ...]
+    .venv/bin/python tools/spike_view_psnr.py CAPTURE LIGHT.npz RUN [RUN ...]
 
 Prints, per run, the mean PSNR at the RGB instants and between them.
 """
