@@ -170,12 +170,12 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
         s = stub_train(capture, out_dir, **kw)
         ov = kw["overrides"]
         s["skips"] = {}
-        if ov.get("early_stop"):
+        if ov.get("skip.early_stop"):
             s["skips"]["early_stop"] = {"proxy": "held_back_train", "frames": ["train:rgb0@0.033333"],
                                         "stopped_at": {"step": 6, "total_steps": 9}, "history": []}
-        if ov.get("cull_frustum"):
+        if ov.get("skip.cull_frustum"):
             s["skips"]["cull"] = {"pruned": 7, "events": []}
-        if ov.get("freeze_static"):
+        if ov.get("skip.freeze_static"):
             s["skips"]["freeze"] = {"fraction_frozen": 0.5, "woken": 2, "checks": 3}
         return s
 

@@ -159,6 +159,6 @@ def test_config_round_trip_and_make_field():
     torch.testing.assert_close(d2(m, q, s, o, 0.1)["means"], d(m, q, s, o, 0.1)["means"])
     assert time_resolution_for([0, 1 / 30, 2 / 30, 2 / 30, 0.1], 1.0) == 5
     cfg = get_preset("fast")
-    f = make_field(cfg, [0, 0, 0], [1, 1, 1], (0, 0.2), [0, 0.1, 0.2])
+    f = make_field(cfg.hexplane, [0, 0, 0], [1, 1, 1], (0, 0.2), [0, 0.1, 0.2])
     assert f.grid.resolutions[0] == [cfg.hexplane.resolution] * 3 + [4]
     assert f.scale_head is None

@@ -201,7 +201,8 @@ def _fake_trainer(n=40):
     item["camera"] = "cam"
     item["image"] = torch.zeros(1, 24, 32, 3)
     return SimpleNamespace(model=model, static_steps=0, total_steps=100, frame_times=[0.0, 0.5, 1.0], items=[item],
-                           schedule=Schedule.plan(100), cfg=SimpleNamespace(static_fraction=0.0))
+                           schedule=Schedule.plan(100),
+                           cfg=SimpleNamespace(schedule=SimpleNamespace(static_fraction=0.0)))
 
 
 def test_train_freezer_freezes_static_field_follows_prune_wakes_and_checkpoints():

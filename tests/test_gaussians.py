@@ -136,7 +136,7 @@ def test_state_round_trip_with_optimizer():
     g = _model(n=5, sh_degree=1)
     _adam_step(g)
     g.oneup_sh_degree()
-    g2 = GaussianModel.from_state(g.state(), get_preset("fast"))
+    g2 = GaussianModel.from_state(g.state(), get_preset("fast").gaussians)
     assert g2.active_sh_degree == 1 and g2.max_sh_degree == 1 and g2.extent == 2.0
     for n, p in g.params().items():
         torch.testing.assert_close(getattr(g2, n).detach(), p.detach())

@@ -569,10 +569,11 @@ def test_prefetch_computes_the_admitted_chains_on_its_thread_as_the_step_would()
     computed there too, at once, while the caller waits (engine.train.spike_flow_cache)."""
     import threading
 
-    inline, calls0 = _fake_supervision(spike_flow_prefetch=0)
     from engine.train import spike_flow_cache
 
-    assert inline._worker is None and spike_flow_cache.PREFETCH == 2  # on by default
+    assert spike_flow_cache.PREFETCH == 2  # on by default
+    inline, calls0 = _fake_supervision(spike_flow_prefetch=0)
+    assert inline._worker is None
     sup, calls = _fake_supervision(spike_flow_prefetch=1)
     threads = []
     est = sup.estimate

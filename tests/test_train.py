@@ -211,7 +211,7 @@ def test_run_json_layout(tiny_capture, tmp_path):
         assert k in info
     assert info["capture"] == str(tiny_capture.resolve()) and info["status"] == "finished" and info["step"] == 4
     device = "cuda" if torch.cuda.is_available() else "cpu"  # train()'s default device
-    assert info["config"]["iterations"] == 4 and info["device"] == device == s["device"]
+    assert info["config"]["schedule"]["iterations"] == 4 and info["device"] == device == s["device"]
 
 
 # ------------------------------------------------------------------------------- presets and budget
@@ -720,7 +720,7 @@ def test_cli_train_takes_the_skip_switches(tiny_capture, tmp_path, capsys):
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     cfg = read_run_json(tmp_path / "r")["config"]
-    assert cfg["cull_frustum"] and cfg["freeze_static"] and not cfg["early_stop"]
+    assert cfg["skip"]["cull_frustum"] and cfg["skip"]["freeze_static"] and not cfg["skip"]["early_stop"]
     assert set(summary["skips"]) == {"freeze", "cull"}
 
 

@@ -86,7 +86,7 @@ def test_state_round_trip_keeps_trajectories_and_optimiser():
     (m.attributes(0.25)["means"] ** 2).sum().backward()
     g.optimizer.step()
     state = m.state()
-    m2 = Model4D.from_state(state, get_preset("fast"))
+    m2 = Model4D.from_state(state, get_preset("fast").gaussians)
     assert m2.trajectory == {"knots": KNOTS}
     for t in (0.0, 0.05, 0.3):
         assert torch.equal(m2.attributes(t)["means"], m.attributes(t)["means"])
