@@ -24,7 +24,7 @@ echo "== where a CUDA training step goes (300 demo steps, RGB then guided)"
 $PY -m tools bench-step demo_capture --steps 300 --device cuda > "$OUTDIR/bench_step_cuda.txt" 2>&1
 grep -E "step ms|raster|admit|x \(target" "$OUTDIR/bench_step_cuda.txt" | head -12
 echo "== the test suite on this box (bpy tests need Python 3.11: they fail or skip elsewhere)"
-$PY -c "import engine.train.budget as b; b.warm_up_runtime('cpu')"  # numba caches once, not per worker
+$PY -c "import engine.train.loop.budget as b; b.warm_up_runtime('cpu')"  # numba caches once, not per worker
 $PY -m pytest -q -p no:cacheprovider --tb=short tests $($PY -c "import xdist" 2>/dev/null && echo "-n 8") \
     > "$OUTDIR/pytest_gpu.log" 2>&1
 grep -E "^(FAILED|ERROR)|passed|failed" "$OUTDIR/pytest_gpu.log" | tail -30

@@ -6,7 +6,7 @@ import pytest
 
 from engine.io.capture import load_capture
 from engine.spike.render import _luma_at_spike_res, estimate_sensor
-from engine.train.baselines import (
+from engine.train.frames.baselines import (
     KINDS,
     baseline_frames,
     reinhard_transfer,

@@ -65,7 +65,7 @@ def test_zip_holds_the_extension_and_nothing_else(built_zip):
     names = zipfile.ZipFile(built_zip).namelist()
     for required in ("blender_manifest.toml", "__init__.py", "bt4d_addon/__init__.py", "bt4d_addon/panel.py",
                      "operators/__init__.py", "operators/import_capture.py", "engine/__init__.py",
-                     "engine/io/capture.py", "engine/train/trainer.py", "demo_capture/transforms.json"):
+                     "engine/io/capture.py", "engine/train/loop/trainer.py", "demo_capture/transforms.json"):
         assert required in names, required
     for n in names:
         assert not n.startswith(("tests/", "scripts/", "tools/", ".venv/", ".git", ".ci/", "runs/", "dist/",

@@ -1,4 +1,4 @@
-"""engine.train.background.PriorityWorker: the spike-flow prefetch's one background thread."""
+"""engine.train.guidance.background.PriorityWorker: the spike-flow prefetch's one background thread."""
 from __future__ import annotations
 
 import sys
@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from engine.train.background import URGENT, PriorityWorker
+from engine.train.guidance.background import URGENT, PriorityWorker
 
 
 def _blocked_worker():
@@ -125,7 +125,7 @@ def test_interpreter_exit_closes_the_workers_and_waits_for_the_running_job(tmp_p
     code = f"""
 import sys, time, pathlib
 sys.path.insert(0, {str(root)!r})
-from engine.train.background import PriorityWorker
+from engine.train.guidance.background import PriorityWorker
 out = pathlib.Path({str(tmp_path)!r})
 w = PriorityWorker("exit-test", nice=19)
 def job(i):

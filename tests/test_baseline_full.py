@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from engine.io.capture import load_capture
-from engine.train.baselines import baseline_frames, with_baseline
 from engine.train.config import get_preset
-from engine.train.interpolation import flow_interpolate, interpolation_inconsistency, lk_flow
-from engine.train.losses import _dssim, _l1, frame_item_fields
+from engine.train.frames.baselines import baseline_frames, with_baseline
+from engine.train.frames.interpolation import flow_interpolate, interpolation_inconsistency, lk_flow
+from engine.train.losses.terms import _dssim, _l1, frame_item_fields
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_frame_loss_ignores_untrusted_pixels_and_scales_synthetic_frames():
 
 def test_real_instants_keep_the_knots_and_stereo_at_the_rgb_frames(cap):
     from engine.geometry.stereo import pair_instants
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     rgb_times = sorted({round(float(f.time), 9) for f in cap.frames if f.role == "train"})
     real_cap = with_baseline(cap, "interp-linear", per_interval=3, instants="real")

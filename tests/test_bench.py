@@ -196,7 +196,7 @@ def test_skip_variants_are_trainer_switches(tmp_path, capture):
 @pytest.mark.slow
 def test_skip_variants_with_the_real_trainer(tmp_path, monkeypatch):
     from engine.io.capture import load_capture
-    from engine.train import early_stop, freezing
+    from engine.train.skipping import early_stop, freezing
 
     monkeypatch.setattr(freezing, "START_FRACTION", 0.0)
     monkeypatch.setattr(freezing, "CHECKS_PER_STAGE", 6)

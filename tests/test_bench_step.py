@@ -82,7 +82,8 @@ def test_variants_profile_both_code_paths_in_one_process(capture, monkeypatch):
 def test_guided_before_variant_patches_the_old_code_paths_and_restores_them():
     import torch
 
-    from engine.train import interpolation, spike_guidance
+    from engine.train.frames import interpolation
+    from engine.train.guidance import spike_guidance
 
     fl, cons = interpolation._flow_length, spike_guidance.flow_consistency
     with bench_step.variant("guided-before"):
@@ -98,7 +99,7 @@ def test_guided_before_variant_patches_the_old_code_paths_and_restores_them():
 
 def test_trajectory_step_variants_switch_the_old_paths_and_restore_them():
     from engine.scene import fused_adam, trajectory
-    from engine.train import scene_flow
+    from engine.train.motion import scene_flow
 
     now = (trajectory.EVALUATOR, fused_adam.ENABLED, scene_flow.DENSE_SEARCH)
     assert now == ("fast", True, False)
@@ -112,7 +113,7 @@ def test_trajectory_step_variants_switch_the_old_paths_and_restore_them():
 
 
 def test_guided_main_variants_switch_the_old_paths_and_restore_them():
-    from engine.train import spike_flow, spike_guidance
+    from engine.train.guidance import spike_flow, spike_guidance
 
     now = (spike_guidance.BETWEEN_DEPTH, spike_flow.inner_only_positions)
     assert now[0] is False
@@ -128,7 +129,7 @@ def test_guided_main_variants_switch_the_old_paths_and_restore_them():
 def test_refresh_before_variant_is_the_old_refresh_periods():
     """``refresh-before`` trains with the guided step's caches refreshed as before (every 10
     steps); the defaults are the new periods (README, "The guided step's per-run work")."""
-    from engine.train import quiet_curves, spike_flow, spike_flow_cache
+    from engine.train.guidance import quiet_curves, spike_flow, spike_flow_cache
 
     assert (spike_flow.SURFACE_EVERY, quiet_curves.REFRESH, spike_flow_cache.UPSAMPLE) == (30, 50, 2)
     with bench_step.variant("refresh-before"):
@@ -139,7 +140,7 @@ def test_refresh_before_variant_is_the_old_refresh_periods():
 def test_flow_inline_variant_computes_the_flows_in_the_step():
     """``flow-inline`` is the flow term without its prefetch worker (the default has one, two
     intervals ahead: README, "The guided step's per-run work")."""
-    from engine.train import spike_flow_cache
+    from engine.train.guidance import spike_flow_cache
 
     assert spike_flow_cache.PREFETCH == 2
     with bench_step.variant("flow-inline"):
@@ -149,7 +150,8 @@ def test_flow_inline_variant_computes_the_flows_in_the_step():
 
 def test_step_before_variant_switches_the_old_paths_and_restores_them():
     from engine.scene import trajectory
-    from engine.train import interpolation, scene_flow
+    from engine.train.frames import interpolation
+    from engine.train.motion import scene_flow
 
     def state():
         return interpolation.FUSED_BOX, scene_flow.ITEM_IMAGES, trajectory.FUSED_FINITE, trajectory.FUSED_CURVES

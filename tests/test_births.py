@@ -1,4 +1,4 @@
-"""Births with temporal opacity (engine.train.births; README "Motion representation")."""
+"""Births with temporal opacity (engine.train.motion.births; README "Motion representation")."""
 from __future__ import annotations
 
 import json
@@ -10,8 +10,8 @@ import torch
 from train_util import trajectory_model
 
 from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE, temporal_opacity
-from engine.train.births import ALWAYS_LOG_SCALE, birth_candidates, ensure_temporal_opacity
 from engine.train.config import get_preset
+from engine.train.motion.births import ALWAYS_LOG_SCALE, birth_candidates, ensure_temporal_opacity
 
 KNOTS = [0.0, 0.1, 0.2, 0.3]
 
@@ -112,8 +112,8 @@ def test_born_gaussians_get_the_backward_flow_lifted_by_depth_and_the_rest_their
     """Issue 11 "ghost": a Gaussian born at T_j on an object that moved 7 px right since T_{j-1}
     must sit 7 px left at T_{j-1} (at the stereo depth there), not at its T_j place."""
     from engine.cameras import project_points
-    from engine.train.births import backward_displacement
-    from engine.train.scene_flow import backproject_pixels
+    from engine.train.motion.births import backward_displacement
+    from engine.train.motion.scene_flow import backproject_pixels
 
     v = _flat_view()
     d_j = np.full((60, 80), 5.0, np.float32)
@@ -139,7 +139,7 @@ def test_born_gaussians_get_the_backward_flow_lifted_by_depth_and_the_rest_their
 
 
 def test_birth_motion_is_off_by_default_and_checked():
-    from engine.train.births import BIRTH_MOTIONS
+    from engine.train.motion.births import BIRTH_MOTIONS
     assert get_preset("fast").births.motion in BIRTH_MOTIONS
 
 
@@ -173,7 +173,7 @@ def test_trainer_moves_born_gaussians_back_to_the_previous_instant(demo_capture,
 def test_component_flow_finds_a_jump_of_an_objects_own_size():
     """Issue 11 "ghost": a textured block that jumps 12 px right and 5 px up (more than its
     own size) between frames gets that translation at every one of its pixels, zero elsewhere."""
-    from engine.train.births import component_flow
+    from engine.train.motion.births import component_flow
 
     rng = np.random.default_rng(3)
     bg = np.kron(rng.uniform(size=(12, 16, 3)), np.ones((4, 4, 1))).astype(np.float32)   # 48 x 64
@@ -190,7 +190,7 @@ def test_component_flow_finds_a_jump_of_an_objects_own_size():
 
 
 def test_unchanged_pixels_are_those_a_neighbouring_instant_repeats():
-    from engine.train.births import unchanged_pixels
+    from engine.train.motion.births import unchanged_pixels
 
     img = np.zeros((4, 5, 3), np.float32)
     img[1, :] = 0.8
@@ -212,7 +212,7 @@ def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life,
 
     from engine.cameras import View
     from engine.scene.gaussians import rgb_to_sh
-    from engine.train.births import spawn_at_instant
+    from engine.train.motion.births import spawn_at_instant
 
     knots = [0.0, 0.1, 0.2]
     model = trajectory_model(knots, 10, centre=(0.0, -50.0, 0.0))  # behind the camera: renders black
@@ -223,7 +223,7 @@ def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life,
     images = {t: wall.copy() for t in knots}
     images[0.1][20:30, 50:60] = 0.9                       # moving: only at 0.1
     frames = [SimpleNamespace(camera="L", time=t) for t in knots]
-    from engine.train import births
+    from engine.train.motion import births
 
     monkeypatch.setattr(births, "MAX_PER_FRAME", 100000)
     cfg = get_preset("fast").replace(birth_error=0.15, birth_lifespan=0.5,
@@ -250,7 +250,7 @@ def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life,
 
 
 def test_stereo_in_front_needs_an_opaque_render_and_the_ratio():
-    from engine.train.births import stereo_in_front
+    from engine.train.motion.births import stereo_in_front
 
     stereo = np.array([3.0, 4.5, 3.0, 6.0])
     render = np.array([5.0, 5.0, 5.0, 5.0])
@@ -268,7 +268,7 @@ def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard, monke
 
     from engine.cameras import View
     from engine.scene.gaussians import rgb_to_sh
-    from engine.train.births import spawn_at_instant
+    from engine.train.motion.births import spawn_at_instant
 
     knots = [0.0, 0.1, 0.2]
     gx, gz = np.meshgrid(np.linspace(-3.5, 3.5, 48), np.linspace(-2.7, 2.7, 36))
@@ -285,7 +285,7 @@ def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard, monke
     images = {t: np.full((H, W, 3), 0.6, np.float32) for t in knots}
     images[0.1][20:30, 10:20] = 0.95                      # moving: only at 0.1
     frames = [SimpleNamespace(camera="L", time=t) for t in knots]
-    from engine.train import births
+    from engine.train.motion import births
 
     monkeypatch.setattr(births, "MAX_PER_FRAME", 100000)
     cfg = get_preset("fast").replace(birth_error=0.15, birth_lifespan=0.5,

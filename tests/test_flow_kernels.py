@@ -1,4 +1,4 @@
-"""The Lucas-Kanade flow's numba kernels (engine.train._flow_kernels, issue 13) give torch's
+"""The Lucas-Kanade flow's numba kernels (engine.train.frames._flow_kernels, issue 13) give torch's
 numbers bit for bit: the box filter, the 3x3 median, the warp, the block matching and a
 whole ``lk_flow``; torch's paths stay where the kernels cannot take over."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from engine.train import interpolation as interp
+from engine.train.frames import interpolation as interp
 
 
 @pytest.fixture
@@ -105,7 +105,7 @@ def test_lk_flow_on_the_demo_capture_is_the_torch_path(torch_paths):
     from pathlib import Path
 
     from engine.io.capture import load_capture
-    from engine.train.trainer import train_frames
+    from engine.train.loop.scene_setup import train_frames
 
     root = Path(__file__).resolve().parents[1] / "demo_capture"
     if not root.exists():

@@ -1,4 +1,4 @@
-"""engine.train.freezing: CPOStream-style prediction (freeze after K quiet checks) and observation
+"""engine.train.skipping.freezing: CPOStream-style prediction (freeze after K quiet checks) and observation
 (wake under a residual), densification bookkeeping, motion of a deformation field, flicker."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from engine.evaluate.flicker import static_flicker
-from engine.train.freezing import Freezer, abrupt_mask, deformation_motion, residual_map, residual_scores
+from engine.train.skipping.freezing import Freezer, abrupt_mask, deformation_motion, residual_map, residual_scores
 
 
 def test_freezes_after_k_quiet_checks_only():
@@ -123,7 +123,7 @@ def _moving_field(speed):
 def test_deformation_motion_temporal_spread_and_bake():
     from types import SimpleNamespace
 
-    from engine.train.freezing import bake_static
+    from engine.train.skipping.freezing import bake_static
 
     speed = torch.tensor([0.0, 1.0, 2.0])
     field = _moving_field(speed)
@@ -181,7 +181,7 @@ def test_static_flicker_zero_for_constant_positive_for_noise_and_ignores_motion(
 
 
 def _fake_trainer(n=40):
-    """What TrainFreezer reads from engine.train.trainer.Trainer: model, static_steps, total_steps,
+    """What TrainFreezer reads from engine.train.loop.trainer.Trainer: model, static_steps, total_steps,
     frame_times and items (view tensors with a camera name)."""
     from types import SimpleNamespace
 
@@ -189,7 +189,7 @@ def _fake_trainer(n=40):
     from engine.scene.deformation import DeformationField
     from engine.scene.gaussians import GaussianModel
     from engine.scene.model import Model4D, view_tensors
-    from engine.train.schedule import Schedule
+    from engine.train.loop.schedule import Schedule
 
     rng = np.random.default_rng(0)
     g = GaussianModel(rng.uniform(-0.5, 0.5, (n, 3)), rng.random((n, 3)), init_opacity=0.5)
@@ -206,7 +206,7 @@ def _fake_trainer(n=40):
 
 
 def test_train_freezer_freezes_static_field_follows_prune_wakes_and_checkpoints():
-    from engine.train.freezing import TrainFreezer
+    from engine.train.skipping.freezing import TrainFreezer
 
     tr = _fake_trainer()
     fz = TrainFreezer(tr, k_checks=2, check_every=1, start_fraction=0.0, wake_residual=0.5)

@@ -1,4 +1,4 @@
-"""The fused SSIM (engine.train.fused_ssim): pytorch_msssim's value and gradient, gradcheck
+"""The fused SSIM (engine.train.losses.fused_ssim): pytorch_msssim's value and gradient, gradcheck
 in float64, and the D-SSIM loss term using it."""
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 import torch
 from pytorch_msssim import ssim
 
-from engine.train import fused_ssim as fs
-from engine.train.fused_ssim import fused_ssim
+from engine.train.losses.fused_ssim import fused_ssim
+from engine.train.losses.terms import fused_ssim as fs
 
 
 def _msssim(p, t):
@@ -49,7 +49,7 @@ def test_identical_images_score_one_and_batched_input():
 def test_dssim_term_uses_it_and_falls_back(monkeypatch):
     from types import SimpleNamespace
 
-    from engine.train.losses import _dssim
+    from engine.train.losses.terms import _dssim
 
     g = torch.Generator().manual_seed(5)
     img = torch.rand(1, 30, 40, 3, generator=g)

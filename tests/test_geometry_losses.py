@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
-from engine.train import geometry_losses
-from engine.train.geometry_losses import decay_visible_opacity
+from engine.train.losses.geometry_losses import decay_visible_opacity
+from engine.train.losses.terms import geometry_losses
 
 W, H = 64, 48
 K = Intrinsics(W, H, 60.0, 60.0, W / 2, H / 2)
@@ -39,8 +39,8 @@ def test_opacity_decay_acts_in_its_window_of_the_schedule():
     from types import SimpleNamespace
 
     from engine.train.config import get_preset
-    from engine.train.geometry_losses import geometry_post_step_hooks
-    from engine.train.schedule import Schedule
+    from engine.train.loop.schedule import Schedule
+    from engine.train.losses.geometry_losses import geometry_post_step_hooks
 
     cfg = get_preset("fast", {"opacity_decay": 0.9, "opacity_decay_until": 0.5, "iterations": 10,
                               "init_backdrop": 0.0})
@@ -65,7 +65,7 @@ def test_opacity_decay_acts_in_its_window_of_the_schedule():
 
 def test_opacity_decay_ends_with_densification_unless_told():
     from engine.train.config import get_preset, opacity_decay_window
-    from engine.train.geometry_losses import geometry_post_step_hooks
+    from engine.train.losses.geometry_losses import geometry_post_step_hooks
 
     assert get_preset("fast").losses.opacity_decay_until is None
     assert opacity_decay_window(get_preset("fast")) == (0.0, get_preset("fast").densify.stop)
@@ -75,7 +75,7 @@ def test_opacity_decay_ends_with_densification_unless_told():
     assert get_preset("fast", {"opacity_decay_until": "1"}).losses.opacity_decay_until == 1.0
     from types import SimpleNamespace
 
-    from engine.train.schedule import Schedule
+    from engine.train.loop.schedule import Schedule
     for until, decayed_at_6 in ((0.5, False), (0.8, True)):
         cfg = get_preset("fast", {"opacity_decay": 0.9, "densify_until": until, "iterations": 10,
                                   "init_backdrop": 0.0})
@@ -91,8 +91,8 @@ def test_every_switch_takes_part_in_a_run(tmp_path, monkeypatch):
     from engine.io.capture import load_capture
     from engine.train import train
     from engine.train.config import get_preset
-    from engine.train.losses import default_loss_terms
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
+    from engine.train.losses.terms import default_loss_terms
     from tools.synthetic import write_synthetic_capture
 
     monkeypatch.setattr(geometry_losses, "COVER_EVERY", 1)
@@ -127,7 +127,7 @@ def test_every_switch_takes_part_in_a_run(tmp_path, monkeypatch):
 def test_orbit_view_turns_about_the_point_the_view_looks_at():
     import math
 
-    from engine.train.geometry_losses import orbit_view
+    from engine.train.losses.geometry_losses import orbit_view
 
     vm = torch.eye(4)[None]
     vm[0, :3, :3] = torch.tensor([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # some rotation
@@ -152,7 +152,7 @@ def test_orbit_view_turns_about_the_point_the_view_looks_at():
 
 
 def test_cover_loss_sees_cracks_not_the_space_around_the_scene():
-    from engine.train.geometry_losses import cover_loss, crack_mask
+    from engine.train.losses.geometry_losses import cover_loss, crack_mask
 
     a = torch.zeros(40, 60)
     a[10:30, 10:50] = 1.0          # the scene's outline, empty space around it
@@ -178,7 +178,7 @@ def test_crack_mask_separable_closing_matches_the_square_box():
     """The two 1-D pools per pass give the k x k box's closing exactly (border empty)."""
     import torch.nn.functional as F
 
-    from engine.train.geometry_losses import crack_mask
+    from engine.train.losses.geometry_losses import crack_mask
 
     g = torch.Generator().manual_seed(3)
     for k in (3, 9, 21):
@@ -195,9 +195,9 @@ def test_cover_kernel_follows_the_render_resolution(tmp_path, monkeypatch):
     the test scenes, 45 px at a 1080x720 capture's 540x360 render; and the term passes the
     render's own size to it."""
     from engine.io.capture import load_capture
-    from engine.train import geometry_losses as gl
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
+    from engine.train.losses.terms import geometry_losses as gl
     from tools.synthetic import write_synthetic_capture
 
     frac = gl.COVER_KERNEL_FRAC
@@ -228,8 +228,8 @@ def test_cover_term_raises_alpha_at_a_new_view(tmp_path, monkeypatch):
 
     from engine.io.capture import load_capture
     from engine.train.config import get_preset
-    from engine.train.geometry_losses import crack_mask, orbit_view
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
+    from engine.train.losses.geometry_losses import crack_mask, orbit_view
     from tools.synthetic import write_synthetic_capture
 
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
@@ -262,7 +262,7 @@ def test_cover_term_raises_alpha_at_a_new_view(tmp_path, monkeypatch):
 def test_seen_from_marks_what_the_source_view_sees():
     import math
 
-    from engine.train.geometry_losses import orbit_view, seen_from
+    from engine.train.losses.geometry_losses import orbit_view, seen_from
 
     vm = torch.eye(4)[None]
     vm[0, 2, 3] = 2.0
@@ -278,7 +278,7 @@ def test_seen_from_marks_what_the_source_view_sees():
 def test_render_grad_rows_limits_the_gradient_to_those_gaussians(tmp_path):
     from engine.io.capture import load_capture
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0))
@@ -299,7 +299,7 @@ def test_render_grad_attrs_limits_the_gradient_to_those_attributes(tmp_path):
     factor only."""
     from engine.io.capture import load_capture
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=32, height=24, n_rgb=2, eval_fps=30.0))
@@ -332,7 +332,7 @@ def test_cover_grad_reaches_the_term_render(tmp_path, monkeypatch):
     from engine.io.capture import load_capture
     from engine.scene.model import Model4D
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
     seen = []
@@ -358,7 +358,7 @@ def test_cover_grad_reaches_the_term_render(tmp_path, monkeypatch):
 def test_cover_grad_names_are_checked():
     import pytest
 
-    from engine.train.geometry_losses import cover_grad_attrs
+    from engine.train.losses.geometry_losses import cover_grad_attrs
 
     assert cover_grad_attrs("all") is None
     assert cover_grad_attrs("opacities+means") == ("opacities", "means")

@@ -126,8 +126,8 @@ def test_training_with_reused_buffers_is_bit_for_bit_the_fresh_path(demo_capture
 
     from engine.io.capture import load_capture
     from engine.train.config import get_preset
-    from engine.train.spike_flow import close_flow_worker
-    from engine.train.trainer import Trainer
+    from engine.train.guidance.spike_flow import close_flow_worker
+    from engine.train.loop.trainer import Trainer
 
     cap = load_capture(demo_capture)
     tiny = {"iterations": 10, "static_fraction": 0.2, "init_max_points": 300, "init_random_points": 100,

@@ -11,7 +11,7 @@ import torch
 
 from engine.scene import trajectory as traj
 from engine.scene.model import TRAJ_MEANS
-from engine.train import spike_flow
+from engine.train.guidance import spike_flow
 
 pytestmark = pytest.mark.skipif(not traj.KERNELS.available(), reason="numba kernels unavailable")
 

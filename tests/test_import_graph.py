@@ -29,6 +29,21 @@ def test_the_check_catches_cycles_upward_arrows_bpy_and_size(tmp_path):
     assert "big.py:1: 30 lines" in problems
 
 
+def test_the_check_keeps_the_order_of_the_parts_of_training(tmp_path):
+    """Inside engine.train: config < frames < losses < motion < guidance < skipping < loop."""
+    root = tmp_path / "engine"
+    for pkg in ("", "train", "train/losses", "train/guidance", "train/loop"):
+        (root / pkg).mkdir(parents=True, exist_ok=True)
+        (root / pkg / "__init__.py").write_text("")
+    (root / "train" / "config.py").write_text("")
+    (root / "train" / "losses" / "terms.py").write_text("from ..guidance import spike_guidance\n")  # up
+    (root / "train" / "guidance" / "spike_guidance.py").write_text("from ..config import x\n")  # down
+    (root / "train" / "loop" / "trainer.py").write_text("from ..config import y\nfrom ..guidance import z\n")
+    problems = import_graph.check(root)
+    assert problems == ["engine/train/losses/terms.py:1: engine.train.losses.terms (train.losses) imports "
+                        "engine.train.guidance.spike_guidance (train.guidance): an arrow pointing up"], problems
+
+
 def test_engine_top_level_names_and_subpackages(repo_root):
     """``engine.train`` is the package whatever was imported first; the lazy names resolve."""
     import subprocess

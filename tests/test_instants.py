@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.train.instants import InstantSampler
+from engine.train.guidance.instants import InstantSampler
 
 
 def test_rgb_and_between_instants_cover_the_stream():

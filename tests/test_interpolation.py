@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from engine.train.interpolation import (
+from engine.train.frames.interpolation import (
     avg_pool_blocks,
     block_colour_loss,
     flow_interpolate,
@@ -115,7 +115,7 @@ def test_block_colour_loss_any_size_at_between_scale(size, scale):
     frame of any size (161x121 used to raise "block grids differ") against the pooled
     frame; a render of the frame's own (area-downscaled) content costs ~nothing and a
     brighter one costs the brightness step."""
-    from engine.train.spike_guidance import scaled_view
+    from engine.train.guidance.spike_guidance import scaled_view
 
     W, H = size
     yy, xx = torch.meshgrid(torch.linspace(0, 1, H), torch.linspace(0, 1, W), indexing="ij")
@@ -135,7 +135,7 @@ def test_block_colour_loss_any_size_at_between_scale(size, scale):
 
 def test_cached_consistency_gives_the_same_interpolation():
     """flow_consistency computed once per pair (SpikeGuidance keeps it) changes nothing."""
-    from engine.train.interpolation import flow_consistency
+    from engine.train.frames.interpolation import flow_consistency
 
     torch.manual_seed(0)
     a = torch.rand(24, 32, 3)
@@ -154,7 +154,7 @@ def test_cached_consistency_gives_the_same_interpolation():
 
 def _block_match_one_at_a_time(A, Bm, flow, radius, win):
     """The search before issue 13 batched its candidates: the reference."""
-    from engine.train.interpolation import _box
+    from engine.train.frames.interpolation import _box
 
     best_cost = _box((A - Bm).abs().sum(1, keepdim=True), win)
     best = torch.zeros_like(flow)
@@ -172,7 +172,7 @@ def _block_match_one_at_a_time(A, Bm, flow, radius, win):
 
 @pytest.mark.parametrize("shape", [(1, 3, 60, 80), (2, 1, 17, 23), (1, 3, 4, 5)])
 def test_batched_block_match_is_bit_for_bit_the_loop(shape):
-    from engine.train.interpolation import _block_match
+    from engine.train.frames.interpolation import _block_match
 
     g = torch.Generator().manual_seed(shape[2])
     A, Bm = torch.rand(shape, generator=g), torch.rand(shape, generator=g)

@@ -215,7 +215,7 @@ def test_a_checkpoint_is_settled():
 def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit(monkeypatch):
     """gaussian_adam=auto with curves under LAZY_MIN_COLUMNS: the same numbers as exact (the
     prior stays a loss term, every column moves at every step, the quiet hook applies whole)."""
-    from engine.train.losses import _traj_reg
+    from engine.train.losses.terms import _traj_reg
 
     class _Ctx:
         def __init__(self, m):
@@ -289,7 +289,7 @@ def test_lazy_training_holds_quiet_curves_also_after_a_settle(demo_capture, monk
     mask whole, so the quiet segments' inner points are zero in the saved model too; the
     inner-residual prior is folded into the optimizer (no traj_reg loss)."""
     from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
     from tests.test_quiet_curves import _TINY, _inner_norms
 
     tr = Trainer(load_capture(demo_capture), get_preset("fast", {**_TINY, "quiet_curves": True,
@@ -341,8 +341,8 @@ def test_auto_on_a_short_capture_trains_bit_for_bit_as_exact(demo_capture):
     import hashlib
 
     from engine.io.capture import load_capture
-    from engine.train.spike_flow import close_flow_worker
-    from engine.train.trainer import Trainer
+    from engine.train.guidance.spike_flow import close_flow_worker
+    from engine.train.loop.trainer import Trainer
 
     cap = load_capture(demo_capture)
     digests = {}
@@ -450,8 +450,8 @@ def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture
     the inner columns are never read and stay zero, and the reads catch their columns up; a full
     run or the switch off keep the short curves whole."""
     from engine.io.capture import load_capture
-    from engine.train.spike_flow import close_flow_worker
-    from engine.train.trainer import Trainer
+    from engine.train.guidance.spike_flow import close_flow_worker
+    from engine.train.loop.trainer import Trainer
     from tests.test_quiet_curves import _TINY
 
     cap = load_capture(demo_capture)

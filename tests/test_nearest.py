@@ -1,4 +1,4 @@
-"""Exact grid nearest-neighbour search (engine.train.nearest) against brute force, and
+"""Exact grid nearest-neighbour search (engine.train.motion.nearest) against brute force, and
 propagate_to_hidden on it against the dense torch.cdist search it replaced (issue 13)."""
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from engine.train import nearest as nn_mod
-from engine.train.nearest import nearest_within
-from engine.train.scene_flow import propagate_to_hidden, propagate_to_hidden_dense
+from engine.train.motion import nearest as nn_mod
+from engine.train.motion.nearest import nearest_within
+from engine.train.motion.scene_flow import propagate_to_hidden, propagate_to_hidden_dense
 
 
 def _brute(q, p, max_dist):

@@ -1,4 +1,4 @@
-"""Quiet curves (engine.train.quiet_curves): no in-between bend where the spike view saw no change."""
+"""Quiet curves (engine.train.guidance.quiet_curves): no in-between bend where the spike view saw no change."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,7 +8,7 @@ import torch
 from engine.scene.model import TRAJ_MEANS, TRAJ_QUATS
 from engine.spike.change import SpikeChange
 from engine.train.config import get_preset
-from engine.train.quiet_curves import inner_keep, quiet_segments, zero_inner
+from engine.train.guidance.quiet_curves import inner_keep, quiet_segments, zero_inner
 
 W, H = 16, 8  # spike view (px); 4 x 2 change blocks of 4 px
 
@@ -72,7 +72,7 @@ def test_zero_inner_clears_only_the_quiet_segments_inner_points():
 def test_zero_quiet_columns_kernel_equals_the_mask_multiply(dtype, monkeypatch):
     """The in-place kernel gives the mask multiply's numbers bit for bit (the sign of a zeroed
     negative entry included), over every column or a step's few, without building the mask."""
-    from engine.train import quiet_curves as qc
+    from engine.train.guidance import quiet_curves as qc
 
     gen = torch.Generator().manual_seed(3)
     n, f = 50, 6
@@ -117,7 +117,7 @@ def test_trainer_holds_quiet_curves_and_only_those(demo_capture):
     have zero inner residuals (positions and rotations) while others still bend; without it, the
     spike terms bend quiet segments too (what the switch exists to stop)."""
     from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     runs = {}
     for on in (True, False):
@@ -156,7 +156,7 @@ def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
 
     from train_util import trajectory_model
 
-    from engine.train import quiet_curves as qc
+    from engine.train.guidance import quiet_curves as qc
 
     calls = []
     real = qc.quiet_segments
@@ -186,8 +186,8 @@ def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
 def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     import types
 
-    from engine.train import quiet_curves as qc
-    from engine.train.quiet_curves import quiet_curves_factory
+    from engine.train.guidance import quiet_curves as qc
+    from engine.train.guidance.quiet_curves import quiet_curves_factory
 
     assert get_preset("fast").spike.quiet_curves and qc.DILATE == 1  # on, one block of dilation
     cfg = get_preset("fast", {"quiet_curves": True})

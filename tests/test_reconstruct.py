@@ -246,7 +246,7 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     assert calls[-1]["overrides"] == {"skip.early_stop": True} and calls[-1]["seconds"] == s.seconds
     # its tooltip says what the engine does: held-back train frames, never the eval frames
     assert "never the eval frames" in s.bl_rna.properties["early_stop"].description
-    # the time budget's tooltip says what the step cap does, per preset (engine.train.budget.step_cap)
+    # the time budget's tooltip says what the step cap does, per preset (engine.train.loop.budget.step_cap)
     from engine.train.config import get_preset
     budget_tip = s.bl_rna.properties["seconds"].description
     assert "twice the preset's step" in budget_tip and get_preset("fast").schedule.step_cap == 2.0
@@ -271,7 +271,7 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     assert calls[-1]["overrides"] == {"schedule.iterations": 5, "losses.cover": 0.0}
     s.close_cracks = True
     # "Fill Cracks By": the engine's default (first item) passes nothing; "Move Only" is passed
-    from engine.train.geometry_losses import cover_grad_attrs
+    from engine.train.losses.geometry_losses import cover_grad_attrs
     assert TrainConfig().losses.cover_grad == "all" and cover_grad_attrs(s.crack_fill) == ("opacities", "means")
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
     assert calls[-1]["overrides"] == {"schedule.iterations": 5, "losses.cover_grad": "opacities+means"}

@@ -156,8 +156,8 @@ def test_training_in_place_is_bit_for_bit_the_copying_path(demo_capture):
     births of the time curriculum's admissions: the same parameters and Adam moments with and
     without the in-place rows."""
     from engine.io.capture import load_capture
-    from engine.train.spike_flow import close_flow_worker
-    from engine.train.trainer import Trainer
+    from engine.train.guidance.spike_flow import close_flow_worker
+    from engine.train.loop.trainer import Trainer
 
     cap = load_capture(demo_capture)
     tiny = {"iterations": 24, "static_fraction": 0.2, "init_max_points": 300, "init_random_points": 100,

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w, project_points
-from engine.train.scene_flow import backproject_pixels, carry_by_flow, image_flow
+from engine.train.motion.scene_flow import backproject_pixels, carry_by_flow, image_flow
 
 
 def _view():
@@ -57,7 +57,7 @@ def test_image_flow_finds_a_shift(method):
 
 
 def test_hidden_gaussians_follow_their_nearest_decided_neighbour():
-    from engine.train.scene_flow import propagate_to_hidden
+    from engine.train.motion.scene_flow import propagate_to_hidden
 
     pos = np.array([[0.0, 0, 0], [0.01, 0, 0], [1.0, 0, 0], [0.02, 0, 0], [5.0, 0, 0]])
     delta = np.zeros((5, 3), np.float32)
@@ -106,8 +106,8 @@ def test_frame_image_is_the_trainers_copy_of_the_file(demo_capture):
     from types import SimpleNamespace
 
     from engine.io.capture import load_capture
-    from engine.train import scene_flow
-    from engine.train.trainer import train_frames
+    from engine.train.loop.scene_setup import train_frames
+    from engine.train.motion import scene_flow
 
     frames = train_frames(load_capture(demo_capture))
     held, other = frames[0], frames[1]

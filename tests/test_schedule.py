@@ -1,4 +1,4 @@
-"""The schedule's virtual clock (engine.train.schedule): unchanged without a re-plan,
+"""The schedule's virtual clock (engine.train.loop.schedule): unchanged without a re-plan,
 continuous and monotone through a budget run's re-plans, carried by checkpoints."""
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import torch
 from engine.io.capture import load_capture
 from engine.io.checkpoint import load_checkpoint
 from engine.train import train
-from engine.train import trainer as trainer_mod
 from engine.train.config import get_preset
-from engine.train.schedule import Schedule
+from engine.train.loop import trainer as trainer_mod
+from engine.train.loop.schedule import Schedule
 from tools.synthetic import write_synthetic_capture
 
 

@@ -99,7 +99,7 @@ def static_capture(demo_capture, tmp_path_factory):
 
 
 def test_guidance_skips_every_window_of_a_static_stream(static_capture, demo_capture):
-    from engine.train.spike_guidance import SpikeGuidance
+    from engine.train.guidance.spike_guidance import SpikeGuidance
 
     tr = _fake_trainer(static_capture, between_colocated_p=1.0)
     g = SpikeGuidance(tr)
@@ -117,7 +117,7 @@ def test_guidance_skips_every_window_of_a_static_stream(static_capture, demo_cap
 
 def test_fine_feature_is_gated_off_where_the_spike_view_never_changes(static_capture, demo_capture):
     from engine.scene.deformation import DeformationField
-    from engine.train.spike_guidance import make_fine_encoder
+    from engine.train.guidance.spike_guidance import make_fine_encoder
 
     field = DeformationField([-3, -3, -1], [3, 3, 3], (0.0, 0.2), features=4, resolution=4, multires=(1,),
                              time_resolution=4, width=16)
@@ -140,7 +140,7 @@ def test_fine_feature_is_gated_off_where_the_spike_view_never_changes(static_cap
 
 def test_static_prior_holds_gaussians_where_the_spike_view_never_changes(static_capture, demo_capture):
     from engine.cameras import look_at_c2w  # noqa: F401  (the demo rig is look-at cameras)
-    from engine.train.spike_guidance import SpikeGuidance
+    from engine.train.guidance.spike_guidance import SpikeGuidance
 
     cap = load_capture(demo_capture)
     g = SpikeGuidance(_fake_trainer(cap))

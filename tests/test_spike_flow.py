@@ -1,4 +1,4 @@
-"""Spike-view optical-flow supervision (issue 11, engine.train.spike_flow): the flow's sign and
+"""Spike-view optical-flow supervision (issue 11, engine.train.guidance.spike_flow): the flow's sign and
 pixel convention, the loss bending a curve toward a known displacement, the switch, the cache."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from train_util import patch_constants, term_values, trajectory_model
 
 from engine.scene.model import TRAJ_MEANS
 from engine.train.config import get_preset
-from engine.train.spike_flow import (
+from engine.train.guidance.spike_flow import (
     SpikeFlowSupervision,
     flow_pair,
     inner_only_positions,
@@ -261,7 +261,7 @@ def test_trainer_steps_with_the_flow_term(demo_capture):
     """Inside real guided steps on the demo capture: finite values, surface Gaussians found,
     and only the curves' inner control points get the term's gradient."""
     from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     tr = Trainer(load_capture(demo_capture), get_preset("fast", _TINY), device="cpu")
     assert "spike_flow" in {t.name for t in tr.loss_terms}
@@ -293,7 +293,7 @@ def test_run_records_the_interval_fits_and_junction_moves(demo_capture, tmp_path
 def test_fit_inner_residuals_recovers_a_bump():
     """Curves at rest at both ends; targets = a known bump a(u) D0 + b(u) D1: the least-squares
     change is D (up to the small ridge), and unobserved curves (weight 0) do not move."""
-    from engine.train.spike_flow import fit_inner_residuals, segment_basis
+    from engine.train.guidance.spike_flow import fit_inner_residuals, segment_basis
 
     u = torch.arange(1, 16, dtype=torch.float32) / 16
     D = torch.tensor([[[0.02, -0.01, 0.0], [0.03, 0.0, 0.01]], [[-0.05, 0.02, 0.0], [-0.04, 0.02, 0.0]],
@@ -311,7 +311,7 @@ def test_fit_inner_residuals_recovers_a_bump():
 def test_lift_inverts_project():
     vm = torch.tensor([[1.0, 0.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [0.0, 1.0, 0.0, 1.5], [0.0, 0.0, 0.0, 1.0]])
     x = torch.tensor([[0.1, 0.3, -0.2], [-0.4, 1.0, 0.5]])
-    from engine.train.spike_flow import lift
+    from engine.train.guidance.spike_flow import lift
 
     uv, z = project(x, vm, K)
     assert torch.allclose(lift(uv, z, vm, K), x, atol=1e-5)
@@ -353,7 +353,7 @@ def test_surface_is_found_and_reused_for_a_few_steps(every):
 def _dis_spy(monkeypatch, **over):
     """A supervision with blank grey images whose flow pairs are recorded (their keyword
     arguments) instead of computed: (supervision, list of kwargs dicts)."""
-    from engine.train import spike_flow_cache as sfc
+    from engine.train.guidance import spike_flow_cache as sfc
 
     sup = _bare_supervision(**over)
     seen = []
@@ -383,9 +383,9 @@ def test_budget_probe_neither_fits_nor_takes_the_runs_fits(demo_capture, monkeyp
     fit (a fit costs ~1 s and made a 120 s run plan 186 steps) nor leave intervals marked as
     fitted (the real run then never fitted them: curves 3x off in the image plane)."""
     from engine.io.capture import load_capture
-    from engine.train.budget import measure_step_seconds
-    from engine.train.spike_flow import SpikeFlowSupervision
-    from engine.train.trainer import Trainer
+    from engine.train.guidance.spike_flow import SpikeFlowSupervision
+    from engine.train.loop.budget import measure_step_seconds
+    from engine.train.loop.trainer import Trainer
 
     tr = Trainer(load_capture(demo_capture), get_preset("fast", _TINY), device="cpu")
     tr.init_model()
@@ -404,7 +404,7 @@ def test_flow_junctions_take_the_other_end_from_the_flow():
     instant nearest the other end, extended to it, lifted at the Gaussian's depth), held beyond
     it; ``born_only``: only those born at that end; others keep their curves."""
     from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE
-    from engine.train.births import ensure_temporal_opacity
+    from engine.train.motion.births import ensure_temporal_opacity
 
     sup, _ = _fake_supervision(steps=3)
     patch_constants(_MP[0], {"spike_flow_min_px": 0.5})
@@ -449,7 +449,7 @@ def test_flow_junctions_hand_their_change_to_hidden_neighbours():
     moved part moves with it); one farther away, and one born at the other end, keep theirs."""
     from engine.scene import trajectory as traj
     from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE
-    from engine.train.births import ensure_temporal_opacity
+    from engine.train.motion.births import ensure_temporal_opacity
 
     def run(hidden: bool):
         sup, _ = _fake_supervision(steps=3, spike_flow_junctions_hidden=hidden, spike_flow_min_px=0.5)
@@ -491,10 +491,10 @@ def test_unknown_junction_mode_is_refused():
 def test_warm_flow_pair_finds_a_jump_that_a_flow_from_zero_misses():
     """A textured disc (radius 10 px) on texture moves 25 px in 10 steps: from zero, DIS keeps
     it near the background's flow; warm-started step by step (each pair from the previous
-    one), it follows the disc, and both directions agree (engine.train.spike_flow_pairs)."""
+    one), it follows the disc, and both directions agree (engine.train.guidance.spike_flow_pairs)."""
     import cv2
 
-    from engine.train.spike_flow_pairs import warm_flow_pair
+    from engine.train.guidance.spike_flow_pairs import warm_flow_pair
 
     rng = np.random.default_rng(0)
     h, w = 60, 80
@@ -521,8 +521,8 @@ def test_warm_flow_pair_finds_a_jump_that_a_flow_from_zero_misses():
 def test_grey_images_are_kept_least_recently_used_first_out(monkeypatch):
     """``gray`` keeps at most GRAY_CACHE images (every flow pair of a run kept them all: ~1 GB
     of a 3 s Vidar capture's); an evicted one asked for again is recomputed, the same array."""
-    from engine.train import spike_flow_cache as sfc
-    from engine.train.spike_flow_pairs import RecentGreys
+    from engine.train.guidance import spike_flow_cache as sfc
+    from engine.train.guidance.spike_flow_pairs import RecentGreys
 
     monkeypatch.setattr(sfc, "GRAY_CACHE", 3)
     sup, _ = _fake_supervision()
@@ -566,10 +566,10 @@ def test_prefetch_computes_the_admitted_chains_on_its_thread_as_the_step_would()
     """``spike_flow_prefetch``: both chains of every interval up to the admitted one and of
     that many intervals beyond are computed on the background worker, earlier intervals
     first, warm-started along the grid exactly as the inline path does; a pair not queued is
-    computed there too, at once, while the caller waits (engine.train.spike_flow_cache)."""
+    computed there too, at once, while the caller waits (engine.train.guidance.spike_flow_cache)."""
     import threading
 
-    from engine.train import spike_flow_cache
+    from engine.train.guidance import spike_flow_cache
 
     assert spike_flow_cache.PREFETCH == 2  # on by default
     inline, calls0 = _fake_supervision(spike_flow_prefetch=0)
@@ -612,7 +612,7 @@ def test_prefetched_flows_train_bit_for_bit_like_inline_ones(demo_capture):
     import hashlib
 
     from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     cap = load_capture(demo_capture)
     digests, ran = [], []
@@ -723,7 +723,7 @@ def test_a_pair_the_step_needs_waits_for_one_queued_pair_at_most():
 def test_the_prefetch_worker_computes_both_flows_of_a_pair_on_its_own_low_priority_thread(monkeypatch):
     """On the worker a pair's backward flow does not go to the pair thread (normal priority): both
     flows run on the worker's thread at nice ``WORKER_NICE``; inline, the pair thread as before."""
-    from engine.train import spike_flow_cache as sfc
+    from engine.train.guidance import spike_flow_cache as sfc
 
     parallel = []
     for ahead in (0, 2):

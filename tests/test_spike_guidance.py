@@ -12,7 +12,7 @@ from engine.io.capture import load_capture
 from engine.scene.fine_deformation import SpikeFineEncoder
 from engine.scene.model import view_tensors
 from engine.train.config import TrainConfig
-from engine.train.spike_guidance import (
+from engine.train.guidance.spike_guidance import (
     SpikeGuidance,
     _block_term,
     _spike_term,
@@ -181,7 +181,7 @@ def test_trainer_runs_spike_losses_and_checkpoint_restores_fine_branch(cap, tmp_
     from engine.scene.model import load_run
     from engine.train import train
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     tr = Trainer(cap, get_preset("fast", _TINY), device="cpu")
     assert {t.name for t in tr.loss_terms} >= {"spike", "block_colour"}
@@ -218,7 +218,7 @@ def test_rgb_only_and_spikeless_captures_skip_the_spike_branch(cap):
     import dataclasses
 
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     rgb = Trainer(cap, get_preset("fast", _TINY), device="cpu", rgb_only=True)
     assert not {"spike", "block_colour"} & {t.name for t in rgb.loss_terms} and not rgb.deformation_hooks
@@ -236,7 +236,8 @@ def test_rgb_only_and_spikeless_captures_skip_the_spike_branch(cap):
 
 @needs_trainer_integration
 def test_baseline_training_data_variant(cap, tmp_path, monkeypatch):
-    from engine.train import baselines, train
+    from engine.train import train
+    from engine.train.frames import baselines
 
     monkeypatch.setattr(baselines, "PER_INTERVAL", 2)
     summary = train(cap, tmp_path / "rep", preset="fast", rgb_only=True, resume=False,
@@ -261,8 +262,8 @@ def test_between_instants_follow_the_trainers_time_curriculum(cap):
 
 @pytest.mark.slow
 def test_block_targets_are_pooled_cached_and_close_to_the_exact_instant(cap, monkeypatch):
-    from engine.train import spike_guidance as sg
-    from engine.train.interpolation import avg_pool_blocks
+    from engine.train.frames.interpolation import avg_pool_blocks
+    from engine.train.guidance import spike_guidance as sg
 
     tr = _fake_trainer(cap, block_interp="flow")
     g = SpikeGuidance(tr)
@@ -328,10 +329,10 @@ def test_fine_encoder_every_reaches_the_encoder_and_each_step_ticks_it(cap, froz
     a frozen encoder (the default) encodes each window once for the run (shared)."""
     from engine.scene.fine_deformation import EncodedWindows
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     assert get_preset("fast").spike.fine_frozen_encoder  # the default (README, Spike guidance)
-    from engine.train import spike_guidance
+    from engine.train.guidance import spike_guidance
 
     monkeypatch.setattr(spike_guidance, "FINE_ENCODER_EVERY", 50)
     tr = Trainer(cap, get_preset("fast", {**_TINY, "iterations": 10, "static_fraction": 0.2,

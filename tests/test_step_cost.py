@@ -11,7 +11,8 @@ import torch
 
 from engine.scene import trajectory as traj
 from engine.scene.model import TRAJ_MEANS
-from engine.train import losses, spike_flow, spike_flow_pairs
+from engine.train.guidance import spike_flow, spike_flow_pairs
+from engine.train.losses.terms import terms as losses
 
 pytestmark = pytest.mark.skipif(not traj.KERNELS.available(), reason="numba kernels unavailable")
 
@@ -124,7 +125,7 @@ def test_dense_flow_with_a_reused_dis_object_is_a_fresh_ones_bit_for_bit(monkeyp
     thread's one object (sizes, scales and pairs interleaved) equal a new object's per call."""
     import numpy as np
 
-    from engine.train import scene_flow
+    from engine.train.motion import scene_flow
 
     imgs = _textures()
     pairs = [(a, b) for a in range(6) for b in range(6) if a != b and (a < 3) == (b < 3)]

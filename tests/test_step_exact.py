@@ -11,7 +11,7 @@ import torch
 from engine.io.capture import load_capture
 from engine.scene import fused_adam, trajectory
 from engine.train.config import get_preset
-from engine.train.trainer import Trainer
+from engine.train.loop.trainer import Trainer
 from tools.synthetic import write_synthetic_capture
 
 
@@ -68,7 +68,7 @@ def test_default_training_is_bit_for_bit_before_the_flow_and_curve_kernels(befor
     ``sink-off``: the curves' gradients summed by autograd, not in place (and the engine as it
     is did add in place)."""
     from engine.scene import trajectory
-    from engine.train.budget import warm_up_runtime
+    from engine.train.loop.budget import warm_up_runtime
     from tools.bench_step import variant
 
     warm_up_runtime("cpu")

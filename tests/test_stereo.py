@@ -200,7 +200,7 @@ def test_trainer_fuses_the_pair_once_for_init_and_depth_priors(demo_capture, mon
     from engine.geometry import depth_priors, init_points, stereo
     from engine.io.capture import load_capture
     from engine.train import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     calls = []
     real = stereo.capture_fusion

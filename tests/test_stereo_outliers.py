@@ -174,7 +174,7 @@ def test_backdrop_gaussians_get_their_opacity_once_at_the_first_step():
     import torch
 
     from engine.train.config import get_preset
-    from engine.train.geometry_losses import geometry_post_step_hooks
+    from engine.train.losses.geometry_losses import geometry_post_step_hooks
 
     no_decay = {"opacity_decay": 1.0}  # the default's opacity decay is a hook of its own
     cfg = get_preset("fast", {"init_backdrop": 0.3, **no_decay})
@@ -220,7 +220,8 @@ def test_backdrop_widens_neither_the_extent_nor_the_field_bounds(tmp_path):
 
     from engine.io.capture import load_capture
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer, inside_box, robust_bounds, scene_points
+    from engine.train.loop.scene_setup import inside_box, robust_bounds, scene_points
+    from engine.train.loop.trainer import Trainer
     from tools.synthetic import write_synthetic_capture
 
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))

@@ -12,13 +12,13 @@ import torch
 from engine.evaluate.heldout import evaluate
 from engine.io.capture import load_capture
 from engine.io.checkpoint import load_checkpoint, read_run_json
-from engine.train import budget as budget_mod
-from engine.train import run as run_mod
 from engine.train import train
-from engine.train import trainer as trainer_mod
-from engine.train.budget import steps_for_budget
 from engine.train.config import PRESETS, TrainConfig, get_preset
-from engine.train.losses import LossTerm
+from engine.train.loop import budget as budget_mod
+from engine.train.loop import run as run_mod
+from engine.train.loop import trainer as trainer_mod
+from engine.train.loop.budget import steps_for_budget
+from engine.train.losses.terms import LossTerm
 from tools.synthetic import write_synthetic_capture
 
 TINY = dict(width=32, height=24, n_rgb=3, eval_fps=60.0)
@@ -305,7 +305,7 @@ def test_fine_encoder_hook_trains_and_is_checkpointed(tiny_capture, tmp_path, mo
 
 def test_time_curriculum_admits_frames_in_order_and_carries_motion_forward(tiny_capture):
     from engine.io.capture import load_capture
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     cap = load_capture(tiny_capture)
     tr = Trainer(cap, get_preset("fast", {"init": "ply", "static_fraction": 0.2, "time_curriculum": 0.5,
@@ -338,7 +338,7 @@ def test_time_curriculum_admits_frames_in_order_and_carries_motion_forward(tiny_
 def test_loss_terms_block_and_stereo_depth():
     from types import SimpleNamespace
 
-    from engine.train.losses import StepContext, _block_l1, _l1, _stereo_depth, default_loss_terms
+    from engine.train.losses.terms import StepContext, _block_l1, _l1, _stereo_depth, default_loss_terms
 
     img = torch.zeros(1, 16, 16, 3)
     img[:, ::2, ::2] = 1.0                      # fine checker, mean 0.25 per 4x4 block
@@ -364,7 +364,7 @@ FREEZE = {"motion": "hexplane", "freeze_static": True, "freeze_k_checks": 2}
 def _freeze_early(monkeypatch, *, proxy_frames=2, **early):
     """The freezer's checks from the start of the deformation stage, ten per stage; the early
     stop's proxy of ``proxy_frames`` frames and its other constants as given (tiny runs)."""
-    from engine.train import early_stop, freezing
+    from engine.train.skipping import early_stop, freezing
 
     monkeypatch.setattr(freezing, "START_FRACTION", 0.0)
     monkeypatch.setattr(freezing, "CHECKS_PER_STAGE", 10)
@@ -603,8 +603,8 @@ def test_seconds_budget_run_ends_within_5_percent_of_its_budget(tiny_capture, tm
 
 
 def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
-    from engine.train.budget import reestimate_deform_steps
-    from engine.train.trainer import Trainer
+    from engine.train.loop.budget import reestimate_deform_steps
+    from engine.train.loop.trainer import Trainer
 
     cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3, "budget_step_cap": 0})
     tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
@@ -621,8 +621,8 @@ def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
 def test_budget_plans_at_most_the_step_cap(tiny_capture):
     """A --seconds budget plans at most budget_step_cap x iterations steps (more overfit the two views:
     README, "eq16"); cap 0 plans what fits; the deformation stage's re-plans and fills keep to it."""
-    from engine.train.budget import reestimate_deform_steps, step_cap
-    from engine.train.trainer import Trainer
+    from engine.train.loop.budget import reestimate_deform_steps, step_cap
+    from engine.train.loop.trainer import Trainer
 
     cfg = get_preset("fast")
     assert step_cap(cfg) == 2 * cfg.schedule.iterations == 2000
@@ -664,7 +664,7 @@ def test_warm_up_compiles_the_host_kernels_on_any_device(monkeypatch, device):
     """On a GPU the admissions' flow and neighbour search still run numba kernels on host
     copies: their first compile was charged to the first admissions (H100 box: RGB admission
     56.7 ms/step cold, 6.7 after this warm-up). The CPU-only kernels are not compiled there."""
-    from engine.train import budget
+    from engine.train.loop import budget
 
     called = []
     for name in ("nearest_warmup", "flow_warmup", "raster_warmup", "hexplane_warmup", "adam_warmup",
@@ -690,8 +690,8 @@ def test_warm_up_runs_before_the_budget_clock(tiny_capture, tmp_path, monkeypatc
 
 def test_budget_re_estimate_keeps_the_schedule_consistent(tiny_capture):
     from engine.io.capture import load_capture
-    from engine.train.budget import reestimate_steps
-    from engine.train.trainer import Trainer
+    from engine.train.loop.budget import reestimate_steps
+    from engine.train.loop.trainer import Trainer
 
     cfg = get_preset("fast", {"init": "ply", "static_fraction": 0.3})
     tr = Trainer(load_capture(tiny_capture), cfg, device="cpu", total_steps=1000)
@@ -730,8 +730,8 @@ def test_budget_probe_prices_the_spike_branchs_in_between_render(demo_capture, m
     render sizes a --seconds run far too long (it then ends mid-curriculum)."""
     from engine.io.capture import load_capture
     from engine.scene.model import Model4D
-    from engine.train.budget import measure_step_seconds
-    from engine.train.trainer import Trainer
+    from engine.train.loop.budget import measure_step_seconds
+    from engine.train.loop.trainer import Trainer
 
     cap = load_capture(demo_capture)
     tr = Trainer(cap, get_preset("fast", {"init_max_points": 400, "init_random_points": 100,
@@ -754,7 +754,7 @@ def test_spike_guided_runs_use_their_own_time_smoothness():
     its time smoothness is ``spike_time_smooth_weight`` (measured: 0.1 beats 0.001 and 1.0)."""
     import types
 
-    from engine.train.losses import _deform_reg
+    from engine.train.losses.terms import _deform_reg
 
     seen = []
     field = types.SimpleNamespace(regularization=lambda tv, smooth, l1: seen.append(smooth) or torch.tensor(0.0))

@@ -156,7 +156,7 @@ def test_spike_guided_steps_move_inner_control_points(demo_capture):
     trajectories' inner control points (E-NeMF's in-between curve), which RGB instants never touch."""
     from engine.io.capture import load_capture
     from engine.scene.trajectory import inner_residuals
-    from engine.train.trainer import Trainer
+    from engine.train.loop.trainer import Trainer
 
     over = {"iterations": 8, "static_fraction": 0.25, "init_max_points": 300, "init_random_points": 100,
             "densify_from": 2.0, "densify_until": 2.0, "block_interp": "linear", "between_colocated_p": 1.0,

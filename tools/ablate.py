@@ -130,7 +130,7 @@ def run_ablation(capture, out_dir, seconds: float | None, variants: list[str], *
             merged = {**(overrides or {}), **ov}
             if steps is not None:
                 merged["iterations"] = int(steps)
-            else:  # equal wall time: the budget's step cap (engine.train.budget.step_cap) would end variants early
+            else:  # equal wall time: the budget's step cap (engine.train.loop.budget.step_cap) would end variants early
                 merged.setdefault("budget_step_cap", 0.0)
             budget = f"{seconds:g} s" if steps is None else f"{int(steps)} steps"
             log(f"[ablate] {name}: training {budget} (rgb_only={rgb_only}, {merged or 'defaults'})")

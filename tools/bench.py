@@ -7,8 +7,8 @@ Design (documented here because the numbers depend on it):
   Variants: ``full`` (the method as configured, spike terms when the spike branch is
   registered), ``rgb_only`` (the RGB-only baseline), and the skip switches of the trainer
   (:data:`VARIANT_OVERRIDES`, ``TrainConfig``): ``freeze`` (``freeze_static``,
-  :class:`engine.train.freezing.TrainFreezer`), ``early_stop`` (``early_stop``: stop when a
-  held-out proxy stops improving, :class:`engine.train.early_stop.EarlyStop`) and ``cull``
+  :class:`engine.train.skipping.freezing.TrainFreezer`), ``early_stop`` (``early_stop``: stop when a
+  held-out proxy stops improving, :class:`engine.train.skipping.early_stop.EarlyStop`) and ``cull``
   (``cull_frustum``: prune Gaussians outside every train frustum).
 * **Curve samples are periodic checkpoints evaluated afterwards**: the run's
   ``checkpoint_every_s`` is set to ``eval_every_s``; every time the trainer writes a new
@@ -25,7 +25,7 @@ Design (documented here because the numbers depend on it):
   reset before each run through ``/proc/self/clear_refs``; elsewhere ``ru_maxrss``, the
   process-lifetime peak, flagged as such). torch CPU tensors are inside the RSS.
 * Early stopping runs inside the trainer: its proxy is the PSNR on a few train frames held
-  back from training (``engine.train.early_stop.PROXY_FRAMES``; never eval frames, so every
+  back from training (``engine.train.skipping.early_stop.PROXY_FRAMES``; never eval frames, so every
   eval figure here is on views the run neither trained on nor stopped by), evaluated every
   ``EVERY_FRACTION`` of the steps (its cost *is* counted in the wall time); training stops
   after ``skip.early_stop_patience`` proxy evaluations without a gain of ``MIN_DELTA_DB``,

@@ -24,9 +24,9 @@ import torch
 from engine.cli.train import parse_overrides
 from engine.io.capture import load_capture
 from engine.scene import fused_adam
-from engine.train.budget import warm_up_runtime
 from engine.train.config import get_preset
-from engine.train.trainer import Trainer
+from engine.train.loop.budget import warm_up_runtime
+from engine.train.loop.trainer import Trainer
 
 HELP = "time the Gaussians' Adam step per parameter: torch, FusedAdam's two passes, its one pass"
 

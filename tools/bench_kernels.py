@@ -1,6 +1,6 @@
 """``python -m tools bench-kernels``: the step's numba kernels against the torch code they
 replace, in one process with the two interleaved (issue 13): the admissions' Lucas-Kanade
-flow (``engine.train.interpolation.FUSED_BOX``) on a capture's train pairs, and the curves at
+flow (``engine.train.frames.interpolation.FUSED_BOX``) on a capture's train pairs, and the curves at
 one instant (``engine.scene.trajectory.FUSED_CURVES``) at a knot and between knots, and the
 "stepcost" round's paths (:func:`stepcost`): the spike-view flow term's subset positions
 (``spike_flow.FUSED_INNER``), the stereo depth term's pixels (``losses.HOIST_STEREO``) and the
@@ -17,8 +17,8 @@ import torch
 
 from engine.io.capture import load_capture
 from engine.scene import trajectory
-from engine.train import interpolation
-from engine.train.trainer import train_frames
+from engine.train.frames import interpolation
+from engine.train.loop.scene_setup import train_frames
 
 HELP = "time the Lucas-Kanade flow and curve kernels against their torch code (same process, interleaved)"
 
@@ -111,9 +111,11 @@ def stepcost(args, knots) -> None:
     import types
 
     from engine.scene.model import TRAJ_MEANS
-    from engine.train import losses, scene_flow, spike_flow, spike_flow_pairs
     from engine.train.config import get_preset
-    from engine.train.trainer import Trainer
+    from engine.train.guidance import spike_flow, spike_flow_pairs
+    from engine.train.loop.trainer import Trainer
+    from engine.train.losses.terms import terms as losses
+    from engine.train.motion import scene_flow
 
     gen = torch.Generator().manual_seed(1)
     n, m = args.gaussians, min(4096, args.gaussians)

@@ -52,20 +52,14 @@ from engine.scene import gaussians as scene_gaussians
 from engine.scene import model as scene_model
 from engine.scene.deformation import DeformationField, HexPlane
 from engine.scene.gaussians import GaussianModel
-from engine.train import (
-    fused_ssim,
-    interpolation,
-    losses,
-    quiet_curves,
-    scene_flow,
-    spike_flow,
-    spike_flow_cache,
-    spike_flow_pairs,
-    spike_guidance,
-)
-from engine.train.budget import warm_up_runtime
 from engine.train.config import get_preset
-from engine.train.trainer import Trainer
+from engine.train.frames import interpolation
+from engine.train.guidance import quiet_curves, spike_flow, spike_flow_cache, spike_flow_pairs, spike_guidance
+from engine.train.loop.budget import warm_up_runtime
+from engine.train.loop.trainer import Trainer
+from engine.train.losses.terms import fused_ssim
+from engine.train.losses.terms import terms as losses
+from engine.train.motion import scene_flow
 
 HELP = "profile a training step per stage: rasterizer, deformation field, fine branch, losses, optimizer"
 
@@ -401,7 +395,7 @@ VARIANTS = {
                     "hexplane_sampler": "auto",
                     "patches": {(row_store, "ENABLED"): False, (grad_buffers, "CARRY"): False}},
     "quiet-mask": {"doc": "the quiet curves held at zero by multiplying each curve by a mask its size, built at "
-                          "every mask refresh, as before engine.train._quiet_kernels (same numbers)",
+                          "every mask refresh, as before engine.train.guidance._quiet_kernels (same numbers)",
                    "hexplane_sampler": "auto", "patches": {(quiet_curves, "FUSED"): False}},
     "curves-serial": {"doc": "the curve and residual kernels on one thread, as before their row-parallel drivers "
                              "(trajectory.PARALLEL; same numbers)", "hexplane_sampler": "auto",
@@ -411,7 +405,7 @@ VARIANTS = {
                               "quiet_curves.REFRESH; now 30 and 50)", "hexplane_sampler": "auto",
                        "patches": {(spike_flow, "SURFACE_EVERY"): 10, (quiet_curves, "REFRESH"): 10}},
     "flow-inline": {"doc": "PREFETCH=0: the flow term's DIS flows computed in the step that first needs "
-                           "them, as before the background worker (engine.train.spike_flow_cache; same flows)",
+                           "them, as before the background worker (engine.train.guidance.spike_flow_cache; same flows)",
                     "hexplane_sampler": "auto", "patches": {(spike_flow_cache, "PREFETCH"): 0}},
     "spike-flow-off": {"doc": "spike_flow_weight=0: without the spike-view optical-flow term on the curves "
                               "(issue 11; on by default)", "hexplane_sampler": "auto",

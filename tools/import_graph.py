@@ -9,10 +9,14 @@ including the lazy ones inside functions) and fails when
 * modules import each other in a circle,
 * a module is longer than ``--max-lines`` (numba kernel modules excepted).
 
-Layers, lowest first (the README's layout section explains each)::
+Layers, lowest first (docs/architecture.md explains each)::
 
     foundations (engine.errors, engine.cameras, engine.colour) < io < raster < spike
     < scene < geometry < evaluate < export < train < cli
+
+and inside ``engine.train`` the same rule over its parts::
+
+    config < frames < losses < motion < guidance < skipping < loop
 """
 from __future__ import annotations
 
@@ -27,6 +31,8 @@ LAYERS = ("foundations", "io", "raster", "spike", "scene", "geometry", "evaluate
 FOUNDATIONS = {"engine", "engine.errors", "engine.cameras", "engine.colour", "engine.numba_cache"}
 # `python -m engine` is the command line's front door: it sits with engine.cli, at the top
 ENTRY_POINTS = {"engine.__main__": "cli"}
+# engine.train's parts, lowest first; a module of engine.train outside them (the package itself) is "config"
+TRAIN_PARTS = ("config", "frames", "losses", "motion", "guidance", "skipping", "loop")
 MAX_LINES = 500  # "no module over ~500 lines": lint and the test suite check the same bound
 KERNEL_MODULES = {"engine.raster._kernels"}  # numba kernels: exempt from the size limit
 ENGINE = Path(__file__).resolve().parents[1] / "engine"
@@ -47,6 +53,14 @@ def layer_of(module: str) -> str:
         return "foundations"
     parts = module.split(".")
     return parts[1] if len(parts) > 1 and parts[1] in LAYERS else "foundations"
+
+
+def train_part_of(module: str) -> str | None:
+    """The part of ``engine.train`` that ``module`` belongs to (None outside training)."""
+    parts = module.split(".")
+    if parts[:2] != ["engine", "train"]:
+        return None
+    return parts[2] if len(parts) > 2 and parts[2] in TRAIN_PARTS else "config"
 
 
 def _resolve(module: str, is_package: bool, level: int, name: str | None) -> str:
@@ -88,7 +102,7 @@ def build_graph(root: Path = ENGINE) -> tuple[dict[str, list[tuple[str, int]]], 
 def find_cycles(graph: dict[str, list[tuple[str, int]]]) -> list[list[str]]:
     """Strongly connected components with more than one module (or a self-import), by
     Tarjan's algorithm over the engine-internal edges. A package's ``__init__`` importing
-    its own modules is not an edge back (``engine.train`` -> ``engine.train.run`` is how a
+    its own modules is not an edge back (``engine.train`` -> ``engine.train.loop.run`` is how a
     package exports; the module importing a sibling goes through the sibling, not the package)."""
     edges = {m: sorted({d for d, _ in deps if d in graph and not d == m and not m.startswith(d + ".")})
              for m, deps in graph.items()}
@@ -141,6 +155,9 @@ def check(root: Path = ENGINE, max_lines: int = MAX_LINES) -> list[str]:
             a, b = layer_of(mod), layer_of(dep)
             if rank[b] > rank[a]:
                 problems.append(f"{rel}:{line}: {mod} ({a}) imports {dep} ({b}): an arrow pointing up")
+            ta, tb = train_part_of(mod), train_part_of(dep)
+            if ta and tb and mod != "engine.train" and TRAIN_PARTS.index(tb) > TRAIN_PARTS.index(ta):
+                problems.append(f"{rel}:{line}: {mod} (train.{ta}) imports {dep} (train.{tb}): an arrow pointing up")
         n = len(files[mod].read_text().splitlines())
         if n > max_lines and mod not in KERNEL_MODULES:
             problems.append(f"{rel}:1: {n} lines (more than {max_lines})")

@@ -29,7 +29,7 @@ if str(REPO) not in sys.path:
 from engine.colour import linear_to_srgb, luminance, srgb_to_linear  # noqa: E402
 from engine.io.capture import load_capture  # noqa: E402
 from engine.scene.model import load_run, view_tensors  # noqa: E402
-from engine.train.spike_guidance import scaled_view, spike_stream_info  # noqa: E402
+from engine.train.guidance.spike_guidance import scaled_view, spike_stream_info  # noqa: E402
 
 
 def main(argv=None) -> int:

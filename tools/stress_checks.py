@@ -17,7 +17,7 @@ from engine.io.spikes import read_spikes, write_spikes
 from engine.spike import render as sr
 from engine.spike.simulate import simulate_spikes, tfi, tfp
 from engine.train import train
-from engine.train.trainer import LOSS_FACTORIES
+from engine.train.loop.trainer import LOSS_FACTORIES
 
 from .stress_cases import PARAM_ORDER, CaseResult, count_nonfinite, make_camera, random_params, render_raw
 from .synthetic import write_moving_capture, write_tiny_capture

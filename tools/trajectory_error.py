@@ -225,7 +225,7 @@ def main(argv=None) -> int:
 
     from engine.io.capture import load_capture
     from engine.scene.model import load_run
-    from engine.train.spike_guidance import spike_stream_info
+    from engine.train.guidance.spike_guidance import spike_stream_info
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("capture")

@@ -1,7 +1,7 @@
 """Temporal flicker of static regions (CPOStream's E_warp with identity flow, exact for a
 static camera): mean |R_t - R_{t-1}| over pixels whose ground truth does not change, and
 the long-range drift |R_t - R_0| (E_warp's second term). What freezing
-(:mod:`engine.train.freezing`) is meant to remove.
+(:mod:`engine.train.skipping.freezing`) is meant to remove.
 """
 from __future__ import annotations
 

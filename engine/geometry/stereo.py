@@ -351,7 +351,7 @@ def pair_instants(capture, cameras: list[str], frames=None):
     """(camera_a, camera_b, [(time, frame_a, frame_b)]) for the first two RGB train cameras
     with frames at common instants. Raises :class:`StereoUnavailable` otherwise. Frames whose
     ``knot`` is False (a baseline's synthetic frames between the RGB instants,
-    engine.train.baselines) take no part: their instants are no RGB instants."""
+    engine.train.frames.baselines) take no part: their instants are no RGB instants."""
     frames = [f for f in (capture.frames if frames is None else frames) if getattr(f, "knot", True)]
     if len(cameras) < 2:
         names = ", ".join(cameras) or "none"

@@ -264,7 +264,7 @@ class DeformationField(nn.Module):
                "time_range": list(self.time_range), **{k: (list(v) if isinstance(v, tuple) else v)
                                                         for k, v in self.options.items()}}
         spec = getattr(self.fine_encoder, "spec", None) or self.fine_spec
-        if spec is not None:  # spike fine branch (engine.train.spike_guidance.SpikeFineEncoder)
+        if spec is not None:  # spike fine branch (engine.train.guidance.spike_guidance.SpikeFineEncoder)
             cfg["fine"] = spec
         return cfg
 

@@ -208,7 +208,7 @@ class EncodedWindows:
       ago (:meth:`tick` counts steps), detached: the encoder is trained, forward and
       backward, on a window's refresh steps only; the attention and the rest of the branch
       train every step on the kept tokens. This changes training
-    (``FINE_ENCODER_EVERY`` of engine.train.spike_guidance).
+    (``FINE_ENCODER_EVERY`` of engine.train.guidance.spike_guidance).
 
     ``refresh_every`` 0 keeps nothing: every call encodes (the code path before issue 13).
     Weights written through ``.data`` (no version bump) are not seen: use ``clear()`` then.
@@ -273,7 +273,7 @@ class SpikeFineEncoder(nn.Module):
         self.register_buffer("bounds_max", torch.as_tensor(spec["bounds_max"], dtype=torch.float32))
         self._cache: SpikeWindowCache | None = None
         self._tried = False
-        # encoder output per window (issue 13); "encoder_every": engine.train.spike_guidance.FINE_ENCODER_EVERY
+        # encoder output per window (issue 13); "encoder_every": engine.train.guidance.spike_guidance.FINE_ENCODER_EVERY
         self.encoded = EncodedWindows(int(spec.get("encoder_every", 1)))
 
     # --- data source ---------------------------------------------------------------------

@@ -31,7 +31,7 @@ from .gaussians import GaussianModel, num_sh_bases
 TRAJ_MEANS, TRAJ_QUATS = "traj_means", "traj_quats"
 # temporal opacity (Spacetime Gaussians, Li et al. CVPR 2024, eq. 3 as a Gaussian in time):
 # [N, 1] centre (capture seconds) and log standard deviation; only Gaussians born at an
-# admitted instant (engine.train.births) have a short life, the rest get exp(30) s
+# admitted instant (engine.train.motion.births) have a short life, the rest get exp(30) s
 TIME_CENTER, TIME_LOG_SCALE = "time_center", "time_log_scale"
 ALWAYS_LOG_SCALE = 30.0  # log std (s) of Gaussians not born at an instant: factor 1 at any t
 BORN_LOG_SCALE_BELOW = 10.0  # a log std under this (e^10 s) marks a Gaussian born at an instant

@@ -25,7 +25,7 @@ The values are the ones ``torch.cat`` and ``t[keep]`` give, bit for bit (``tests
 and a training run with and without: ``ENABLED``). Works on any device. Memory: up to a quarter
 more rows between reallocations, but no step holds two copies of the whole state any more: a 1 s
 capture's 1000-step run peaked at 1.51 GB RGB-only and 1.56 GB with the spike branch, against
-1.71 and 2.01 GB before (``ru_maxrss``; with ``engine.train.quiet_curves``' kernel).
+1.71 and 2.01 GB before (``ru_maxrss``; with ``engine.train.guidance.quiet_curves``' kernel).
 """
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ SpikeWindowCache`, so no extra decoding):
 * a block has *changed* when ``d > max(z sigma, q median(d))``; an interval with no
   changed block is *static*.
 
-Uses (:mod:`engine.train.spike_guidance`): between-frame instants are drawn only in intervals
+Uses (:mod:`engine.train.guidance.spike_guidance`): between-frame instants are drawn only in intervals
 that changed (a capture that never changes costs nothing beyond RGB training), and the
 fine-scale feature is gated by the (dilated) change map at each Gaussian's projection, so
 static regions receive no spike-driven motion (and do not flicker).

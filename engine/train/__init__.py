@@ -1,10 +1,10 @@
-"""Training: the trainer loop, its loss terms, presets (``TrainConfig``), budget probe,
-spike guidance, freezing, early stop, culling and the two-stage baselines.
+"""Training, in parts that name the method (lowest first; docs/architecture.md):
+``config`` < ``frames`` < ``losses`` < ``motion`` < ``guidance`` < ``skipping`` < ``loop``.
 
 May import: every package below it (foundations, io, raster, spike, scene, geometry,
 evaluate). Nothing below imports training.
 """
 from .config import TrainConfig, get_preset
-from .run import train
+from .loop.run import train
 
 __all__ = ["TrainConfig", "get_preset", "train"]

@@ -1,0 +1,457 @@
+"""The trainer: one run's data, model and optimisers; :meth:`Trainer.step` is one iteration.
+
+Coarse-stage 4D Gaussian training on the train cameras' RGB frames.
+
+Two stages (4D Gaussians, Wu et al.; paper's "coarse DSR + L_frame"):
+
+1. static warm-up: canonical Gaussians only, trained on every RGB frame;
+2. deformation: a HexPlane deformation field (``engine.scene.deformation``) deforms the
+   canonical Gaussians to each frame's capture time; both are optimised jointly.
+
+Each step renders one random train frame (a per-epoch permutation, seeded by ``seed``) and
+minimises a list of loss terms (:class:`engine.train.losses.terms.LossTerm`): L1 + lambda *
+D-SSIM on the RGB frame plus the deformation regularisers, and the terms of the loss
+factories in :data:`LOSS_FACTORIES` (the spike guidance and its along-ray prior; none with
+``rgb_only=True``).
+
+Every schedule reads one clock, :class:`engine.train.loop.schedule.Schedule` (fractions of
+``engine.train.config``, continuous when a budget run re-plans its total); the loop around
+the trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.loop.run`.
+
+Skipping what a scene does not need (switches of :class:`TrainConfig`, all off by default,
+checkpointed with the run so that cancel + resume equals an uninterrupted run):
+
+* ``freeze_static``: CPOStream freezing (:class:`engine.train.skipping.freezing.TrainFreezer`):
+  Gaussians that stay still for K motion checks skip the deformation field;
+* ``early_stop``: stop (status ``finished``, ``stopped_early`` in the summary and run.json)
+  when the PSNR on train frames held back from training (never the eval frames) stops
+  improving (:class:`engine.train.skipping.early_stop.EarlyStop`);
+* ``cull_frustum``: prune Gaussians outside every train frustum after the first step, at
+  the start of the deformation stage and after each densification
+  (:class:`engine.train.skipping.culling.FrustumCuller`).
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from ...errors import RunError
+from ...geometry.depth_priors import FusionCache, stereo_depth_priors
+from ...geometry.init_points import initial_points
+from ...scene.deformation import (
+    LR_GRID_FINAL,
+    LR_MLP_FINAL,
+    TIME_CELLS_PER_FRAME,
+    TIME_CELLS_PER_FRAME_GUIDED,
+    make_field,
+)
+from ...scene.gaussians import GaussianModel
+from ...scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
+from ...scene.trajectory import extrapolate_junctions, gradient_sink
+from ..config import TrainConfig, block_weight
+from ..guidance.quiet_curves import quiet_curves_factory
+from ..guidance.spike_flow import spike_flow_factory
+from ..guidance.spike_guidance import guidance_factory, spike_stream_info
+from ..losses.geometry_losses import geometry_post_step_hooks
+from ..losses.terms import (
+    MOTIONS,
+    LossTerm,
+    StepContext,
+    default_loss_terms,
+    frame_item_fields,
+    renders_at_instants_only,
+)
+from ..skipping.culling import FrustumCuller
+from ..skipping.early_stop import EarlyStop, hold_back_frames
+from ..skipping.freezing import TrainFreezer
+from .scene_setup import capture_path, inside_box, robust_bounds, scene_extent, scene_points, train_frames
+from .schedule import Schedule
+
+# The loss factories of a run: each ``(trainer) -> [LossTerm]`` is called when a (non rgb_only) run starts. The spike
+# guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the along-ray prior,
+# the spike-view flow term and the quiet-curves hook (after the flow fit; issue 11) ride on its between instants.
+LossFactory = Callable[["Trainer"], "list[LossTerm] | None"]
+LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, spike_flow_factory, quiet_curves_factory)
+
+PRUNE_BIG_WORLD = 0.2  # densification prunes Gaussians whose largest scale exceeds this x extent (3DGS)
+
+
+# ---------------------------------------------------------------------------------- trainer
+class Trainer:
+    """Holds the data, model and optimisers of one run; :meth:`step` does one iteration."""
+
+    def __init__(self, capture, cfg: TrainConfig, *, device, seed: int = 0, rgb_only: bool = False,
+                 total_steps: int | None = None, loss_factories: Sequence[LossFactory] = LOSS_FACTORIES):
+        self.capture = capture
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.fusion_cache = FusionCache(capture)  # one SGBM fusion for init points, depth priors, flow carry
+        self.seed = int(seed)
+        self.rgb_only = bool(rgb_only)
+        self.total_steps = int(total_steps or cfg.schedule.iterations)
+        frames = train_frames(capture)
+        if not frames:
+            raise RunError(capture_path(capture) or "capture", "the capture has no train RGB frames")
+        # early stopping scores frames held back from training, never the eval frames that
+        # every reported metric is computed on (issue 13)
+        self.held_back: list = []
+        if cfg.skip.early_stop:
+            frames, self.held_back = hold_back_frames(frames)
+        self.items = []
+        for i, f in enumerate(frames):
+            vt = view_tensors(capture.view(f), self.device)
+            img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
+            if img.shape[:2] != (vt["height"], vt["width"]):
+                raise RunError(getattr(f, "path", "frame"), f"image is {img.shape[1]}x{img.shape[0]} but its camera "
+                               f"says {vt['width']}x{vt['height']}")
+            vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(self.device)[None]
+            vt["index"] = i
+            vt["camera"] = f.camera
+            vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight, mask
+            self.items.append(vt)
+        if cfg.losses.depth > 0:  # issue 14: fused SGBM depth at every RGB instant
+            priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
+            self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
+            for f, it in zip(frames, self.items):
+                if id(f) in priors and priors[id(f)][1].sum() >= 16:
+                    d, ok = priors[id(f)]
+                    it["stereo_depth"] = torch.from_numpy(d).to(self.device)
+                    it["stereo_mask"] = torch.from_numpy(ok).to(self.device)
+        self.frame_times = sorted({round(float(it["time"]), 9) for it in self.items if it["knot"]})
+        tr = getattr(capture, "time_range", None)
+        self.time_range = (float(tr[0]), float(tr[1])) if tr else (min(self.frame_times), max(self.frame_times))
+        self.model: Model4D | None = None
+        self.deform_opt: torch.optim.Adam | None = None
+        self.loss_terms = default_loss_terms(cfg)
+        self.post_step_hooks = geometry_post_step_hooks(cfg)  # issue 14: (trainer, step, item, meta)
+        # extension hooks (the spike branch): called with the trainer once the deformation
+        # field exists (new run or resumed), e.g. to set ``field.fine_encoder`` and call
+        # :meth:`add_deformation_parameters`; ``fine_provider(item) -> [N, W] | None`` feeds
+        # the Eq. 10 fine feature of each step's render.
+        self.deformation_hooks: list[Callable[["Trainer"], None]] = []
+        self.fine_provider: Callable[[dict], torch.Tensor | None] | None = None
+        if not self.rgb_only:
+            for factory in loss_factories:
+                self.loss_terms.extend(factory(self) or [])
+        self.init_info: dict = {}
+        self.extent = 1.0
+        self.field_box = None  # (lo[3], hi[3]) of the non-backdrop init points; see init_model
+        self.last_losses: dict = {}
+        self._carried_to = -math.inf  # latest frame time whose motion was carried forward
+        self.carry_info: list[dict] = []  # trajectories carried by scene flow (traj_carry="flow")
+        # skipping: owned by the trainer, checkpointed in state()
+        self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.skip.freeze_static else None
+        self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.skip.early_stop else None
+        self.cull: FrustumCuller | None = FrustumCuller() if cfg.skip.cull_frustum else None
+
+    # ---- schedule: every one reads one clock, continuous under budget re-plans (engine.train.loop.schedule) ----
+    total_steps = property(lambda self: self.schedule.total,
+                           lambda self, n: setattr(self, "schedule", Schedule.plan(n)),
+                           doc="Real steps planned; setting it plans afresh (mid-run re-plans: schedule.replan)")
+
+    static_steps = property(lambda self: self.schedule.static_steps(self.cfg.schedule.static_fraction))
+
+    def stage_of(self, step: int) -> str:
+        return "static" if step < self.static_steps else "deform"
+
+    def time_window(self, step: int) -> float:
+        """Latest capture time trained on at ``step`` (time curriculum of the deformation stage).
+
+        The static warm-up sees the first RGB instant only (the canonical scene is the scene at
+        t0; warming up on every frame was measured and dropped). The deformation stage
+        then widens the window from t0 to the last frame over ``time_curriculum`` of its steps,
+        so each newly admitted frame starts from the motion of the frames before it (fast
+        objects move less than their size between neighbouring frames, so gradients find them).
+        """
+        t0, t1 = self.frame_times[0], self.frame_times[-1]
+        if self.stage_of(step) == "static":
+            return t0 if self.cfg.schedule.static_fraction < 1.0 else t1
+        if self.cfg.schedule.time_curriculum <= 0:
+            return t1
+        p = self.schedule.deform_progress(step, self.cfg.schedule.static_fraction)
+        return t0 + (t1 - t0) * min(1.0, p / self.cfg.schedule.time_curriculum)
+
+    def frame_pool(self, step: int) -> list[int]:
+        t_max = self.time_window(step) + 1e-9
+        pool = [i for i, it in enumerate(self.items) if it["time"] <= t_max]
+        return pool or list(range(len(self.items)))
+
+    def frame_index(self, step: int) -> int:
+        pool = self.frame_pool(step)
+        if len(pool) == len(self.items):  # every frame once per epoch
+            n = len(pool)
+            epoch, k = divmod(step, n)
+            return int(np.random.default_rng([self.seed, epoch]).permutation(n)[k])
+        return pool[int(np.random.default_rng([self.seed, step, 7]).integers(len(pool)))]
+
+    # ---- setup --------------------------------------------------------------------------
+    def init_model(self) -> None:
+        torch.manual_seed(self.seed)
+        cfg = self.cfg
+        pts = initial_points(self.capture, cfg.init.method, max_points=cfg.init.max_points,
+                             n_random=cfg.init.random_points, seed=self.seed, backdrop=cfg.init.backdrop,
+                             fusion_cache=self.fusion_cache, planes=cfg.init.planes)
+        self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
+        if getattr(self, "depth_prior_note", None):
+            self.init_info["depth_prior_unavailable"] = self.depth_prior_note
+        centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3]
+                            for it in self.items])
+        core = scene_points(pts.xyz, pts.info)
+        self.extent = scene_extent(core, centers)
+        # with a backdrop, the deformation field's bounds come from the Gaussians inside the box
+        # of the points that are not backdrop (None without one: bounds as before, bit-identical)
+        self.field_box = None if core is pts.xyz else (core.min(0).tolist(), core.max(0).tolist())
+        g = GaussianModel(pts.xyz, pts.rgb, sh_degree=cfg.gaussians.sh_degree, init_opacity=cfg.gaussians.init_opacity,
+                          device=self.device)
+        g.instants_only = renders_at_instants_only(cfg, self.items, self.rgb_only)  # lazy curves: LAZY_RGB_ONLY
+        g.setup_optimizer(cfg.gaussians, self.extent)
+        self.model = Model4D(g, None, background=cfg.losses.background, near_plane=near_plane_for_extent(self.extent))
+        self.model.use_deformation = False
+        self._watch_gaussians()
+
+    def _watch_gaussians(self) -> None:
+        """With freezing on, route the Gaussians' ``_replace`` (densify, prune, cull) through
+        the freezer so that its per-Gaussian state follows the rows."""
+        g = self.model.gaussians
+        if self.freeze is None or "_replace" in vars(g):
+            return
+        freeze, replace = self.freeze, type(g)._replace
+
+        def _replace(new_tensors, keep, n_new, _g=g):
+            replace(_g, new_tensors, keep, n_new)
+            freeze.follow(keep, n_new)
+
+        g._replace = _replace
+
+    def start_deformation(self) -> None:
+        """Start the motion of ``cfg.motion.representation``: per-Gaussian trajectories (issue 11,
+        engine.scene.trajectory) and / or the deformation field around the current canonical
+        Gaussians (with both, the field is a residual on top of the trajectories)."""
+        motion = self.cfg.motion.representation
+        if motion not in MOTIONS:
+            raise ValueError(f"unknown motion representation {motion!r}; choose one of {', '.join(MOTIONS)}")
+        self.model.use_deformation = True
+        if "trajectory" in motion:
+            self.model.add_trajectories(self.frame_times, self.cfg.motion.lr_traj * self.extent,
+                                        self.cfg.motion.lr_traj_quats)
+        if "hexplane" not in motion:
+            return
+        g = self.model.gaussians
+        means = g.means.detach().cpu().numpy()
+        lo, hi = robust_bounds(inside_box(means, self.field_box))
+        # spike / block colour losses constrain the field between frames: finer time cells
+        per_frame = TIME_CELLS_PER_FRAME_GUIDED if self.between_supervised() else TIME_CELLS_PER_FRAME
+        field = make_field(self.cfg.hexplane, lo, hi, self.time_range, self.frame_times, seed=self.seed,
+                           time_cells_per_frame=per_frame).to(self.device)
+        self.model.deformation = field
+        self.model.use_deformation = True
+        self._make_deform_opt()
+        for hook in self.deformation_hooks:
+            hook(self)
+
+    @property
+    def guided(self) -> bool:
+        """:meth:`between_supervised`, computed once per run."""
+        if getattr(self, "_guided", None) is None:
+            self._guided = self.between_supervised()
+        return self._guided
+
+    def between_supervised(self) -> bool:
+        """True when the spike guidance supervises instants between the RGB frames."""
+        if self.rgb_only:
+            return False
+        if spike_stream_info(self.capture) is None:  # no spikes: plain RGB training, no flag needed
+            return False
+        return self.cfg.spike.loss_weight > 0 or block_weight(self.cfg) > 0
+
+    def _make_deform_opt(self) -> None:
+        d = self.model.deformation
+        groups = [{"params": d.grid_parameters(), "lr": self.cfg.hexplane.lr_grid, "name": "grid"},
+                  {"params": d.mlp_parameters(), "lr": self.cfg.hexplane.lr_mlp, "name": "mlp"}]
+        self.deform_opt = torch.optim.Adam(groups, lr=0.0)
+
+    def _carry_forward(self, t_max: float) -> None:
+        """When the time window grows past frames not trained yet, start their deformation
+        from the latest trained one: copy that time cell of every time plane forward."""
+        admitted = [t for t in self.frame_times if t <= t_max + 1e-9]
+        t_prev = admitted[-1]
+        if t_prev <= self._carried_to:
+            return
+        d = self.model.deformation
+        last = self._carried_to
+        self._carried_to = t_prev
+        if last == -math.inf:
+            return
+        if self.model.trajectory is not None:  # later knots start from the motion so far
+            self._carry_trajectories(last)
+        if d is None:
+            return
+        u = (d.normalize_time(last) + 1.0) / 2.0
+        with torch.no_grad():
+            for p in d.grid.temporal:
+                T = p.shape[-2]
+                c = min(T - 1, int(math.ceil(u * (T - 1) - 1e-6)))
+                if c < T - 1:
+                    p[:, :, c + 1:, :] = p[:, :, c:c + 1, :]
+
+    def _carry_trajectories(self, last: float) -> None:
+        """Knots after ``last`` start at constant velocity (``traj_carry=velocity``), hold (``hold``), or where
+        optical flow + per-instant stereo put each Gaussian (``flow``, engine.train.motion.scene_flow; constant velocity
+        for what it cannot see). A lazy optimiser's skipped moves land first (engine.scene.lazy_adam)."""
+        knots, g = self.model.trajectory["knots"], self.model.gaussians
+        li = int(np.argmin([abs(k - last) for k in knots]))
+        g.settle()
+        mode = "velocity" if self.cfg.motion.carry == "flow" else self.cfg.motion.carry
+        extrapolate_junctions(getattr(g, TRAJ_MEANS).data, knots, li, li + 1, mode=mode)
+        extrapolate_junctions(getattr(g, TRAJ_QUATS).data, knots, li, li + 1, mode="hold")
+        frames = train_frames(self.capture)
+        if self.cfg.motion.carry == "flow" and li + 1 < len(knots):
+            from ..motion.scene_flow import carry_trajectories
+            self.carry_info.append(carry_trajectories(self, frames, knots, li, li + 1))
+        if self.cfg.births.error > 0 and li + 1 < len(knots):
+            from ..motion.births import spawn_at_instant
+            spawn_at_instant(self, frames, knots[li + 1])  # records in self.birth_info
+
+    def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
+        """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
+        if self.deform_opt is None:
+            raise RuntimeError("the deformation stage has not started")
+        self.deform_opt.add_param_group({"params": list(params), "lr": lr, "name": name})
+
+    def _update_lrs(self, step: int) -> None:
+        self.model.gaussians.update_learning_rate(self.schedule.run_progress(step))
+        p = min(1.0, max(0.0, self.schedule.deform_progress(step, self.cfg.schedule.static_fraction, last=1)))
+        if self.model.trajectory is not None:  # decays over the deformation stage, like the field
+            for grp in self.model.gaussians.optimizer.param_groups:
+                if grp["name"] == TRAJ_MEANS:
+                    grp["lr"] = self.extent * math.exp(math.log(self.cfg.motion.lr_traj) * (1 - p)
+                                                       + math.log(self.cfg.motion.lr_traj_final) * p)
+        if self.deform_opt is not None:
+            for grp in self.deform_opt.param_groups:
+                if grp["name"] == "grid":
+                    grp["lr"] = math.exp(math.log(self.cfg.hexplane.lr_grid) * (1 - p) + math.log(LR_GRID_FINAL) * p)
+                elif grp["name"] == "mlp":
+                    grp["lr"] = math.exp(math.log(self.cfg.hexplane.lr_mlp) * (1 - p) + math.log(LR_MLP_FINAL) * p)
+
+    # ---- one iteration --------------------------------------------------------------------
+    def step(self, step: int) -> dict:
+        cfg = self.cfg
+        model = self.model
+        g = model.gaussians
+        stage = self.stage_of(step)
+        if stage == "deform" and not model.use_deformation:
+            self.start_deformation()
+        if cfg.gaussians.sh_degree > 0 and cfg.gaussians.sh_step_fraction > 0:
+            want = self.schedule.sh_degree(step, cfg)
+            while g.active_sh_degree < want:
+                g.oneup_sh_degree()
+        self._update_lrs(step)
+        if stage == "deform" and self.cfg.schedule.time_curriculum > 0:
+            self._carry_forward(self.time_window(step))
+        item = self.items[self.frame_index(step)]
+        fine = self.fine_provider(item) if (self.fine_provider is not None and stage == "deform") else None
+        rgb, alpha, meta, attrs = model.render(item, fine=fine)
+        means2d = meta.get("means2d")
+        if means2d is not None and means2d.requires_grad:
+            means2d.retain_grad()
+        ctx = StepContext(self, step, stage, item, rgb, alpha, meta, attrs)
+        total = 0.0
+        losses = {}
+        for term in self.loss_terms:
+            if stage not in term.stages or term.weight == 0:
+                continue
+            val = term.fn(ctx)
+            if val is None:
+                continue
+            losses[term.name] = float(val.detach())
+            total = total + term.weight * val
+        for opt in filter(None, (g.optimizer, self.deform_opt)):
+            opt.zero_grad(set_to_none=True)
+        with gradient_sink():  # the curves' readers sum their gradients in place (issue 13)
+            total.backward()
+
+        # densification statistics and schedule
+        dense = self.schedule.in_densify_window(step, cfg)
+        if dense and means2d is not None and means2d.grad is not None:
+            g.add_densification_stats(means2d.grad, meta["radii"], item["width"], item["height"])
+        g.optimizer.step()
+        if self.deform_opt is not None and stage == "deform":
+            self.deform_opt.step()
+        for hook in self.post_step_hooks:
+            hook(self, step, item, meta)
+        if self.freeze is not None and stage == "deform":  # observation module, on this render's rows
+            self.freeze.after_step(step, item, rgb, meta)
+        info = {}
+        if self.schedule.densify_due(step, cfg):
+            gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
+            info = g.densify_and_prune(grad_threshold=cfg.densify.grad_threshold,
+                                       percent_dense=cfg.densify.percent_dense,
+                                       min_opacity=cfg.densify.prune_opacity, max_world_scale=PRUNE_BIG_WORLD,
+                                       max_gaussians=cfg.densify.max_gaussians,
+                                       generator=gen if self.device.type == "cpu" else None)
+        if self.cull is not None and (step == 0 or (stage == "deform" and self.stage_of(step - 1) == "static") or info):
+            self.cull(self, step)
+        if self.freeze is not None and stage == "deform":  # prediction module (periodic motion checks)
+            self.freeze.maybe_check(step)
+        with torch.no_grad():
+            mse = float(((rgb.detach().clamp(0, 1) - item["image"]) ** 2).mean())
+        self.last_losses = losses
+        return {"loss": float(total.detach()), "psnr": -10.0 * math.log10(max(mse, 1e-10)), "stage": stage,
+                "losses": losses, "densify": info}
+
+    # ---- state ------------------------------------------------------------------------------
+    def state(self, step: int) -> dict:
+        return {
+            "model": self.model.state(),
+            "deform_optimizer": None if self.deform_opt is None else self.deform_opt.state_dict(),
+            "step": int(step),
+            "total_steps": int(self.total_steps),
+            "schedule": self.schedule.state_dict(),
+            "time_range": list(self.time_range),
+            "frame_times": list(self.frame_times),
+            "extent": self.extent,
+            "field_box": self.field_box,
+            "init": self.init_info,
+            "gaussians": self.model.gaussians.num_gaussians,
+            "carried_to": self._carried_to,
+            "skips": {"freeze": None if self.freeze is None else self.freeze.state_dict(),
+                      "early_stop": None if self.early_stop is None else self.early_stop.state_dict(),
+                      "cull": None if self.cull is None else self.cull.state_dict()},
+        }
+
+    def skip_summary(self) -> dict:
+        """What the skip switches did (run.json / summary): only the enabled ones."""
+        out = {}
+        if self.freeze is not None:
+            out["freeze"] = self.freeze.summary()
+        if self.early_stop is not None:
+            out["early_stop"] = self.early_stop.summary()
+        if self.cull is not None:
+            out["cull"] = self.cull.summary()
+        return out
+
+    def load_state(self, state: dict) -> int:
+        self.schedule = Schedule.from_state(state.get("schedule"), int(state["total_steps"]))
+        self.extent = float(state.get("extent", 1.0))
+        self.field_box = state.get("field_box")
+        self.init_info = state.get("init", {})
+        self._carried_to = float(state.get("carried_to", -math.inf))
+        self.model = Model4D.from_state(state["model"], self.cfg.gaussians, device=self.device)
+        if self.model.deformation is not None:
+            self._make_deform_opt()
+            for hook in self.deformation_hooks:
+                hook(self)
+            if state.get("deform_optimizer") is not None:
+                self.deform_opt.load_state_dict(state["deform_optimizer"])
+        skips = state.get("skips") or {}
+        for name in ("freeze", "early_stop", "cull"):
+            owner = getattr(self, name)
+            if owner is not None and skips.get(name) is not None:
+                owner.load_state_dict(skips[name])
+        self._watch_gaussians()
+        if self.freeze is not None:
+            self.freeze.sync_mask()
+        return int(state["step"])
