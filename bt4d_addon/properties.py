@@ -31,10 +31,10 @@ MOTION_ITEMS = (  # the engine setting motion.representation; the first is the e
 )
 CRACK_FILL_ITEMS = (  # the engine setting losses.cover_grad; the first is the engine's default
     ("all", "Grow and Move",
-     "Gaussians may grow, turn and move to cover cracks: best on most scenes (README)"),
+     "Gaussians may grow, turn and move to cover cracks: best on most scenes"),
     ("opacities+means", "Move Only",
      "Gaussians only move and gain opacity: no streaks on finely textured surfaces at high "
-     "resolution, but some holes may stay (README \"What the term may change\")"),
+     "resolution, but some holes may stay"),
 )
 DEVICE_ITEMS = (
     ("auto", "Auto", "CUDA when torch sees a GPU, otherwise the CPU"),

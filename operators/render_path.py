@@ -12,7 +12,7 @@ conventions: EXR = linear RGBA (premultiplied) + Z, PNG = 8-bit sRGB (RGBA when
 ``film_transparent``, else RGB over black). The sequence is loaded back as an image
 datablock (source 'SEQUENCE'). ``prune_unobserved`` ("Drop Unobserved Gaussians", off by
 default) renders without the Gaussians no train camera saw inside its image
-(``engine.scene.observed``, issue 14; README "Orbit around the demo").
+(``engine.scene.observed``, issue 14; docs/experiments/orbit-around-the-demo.md "Orbit around the demo").
 
 Interactive: a modal operator with a window-manager timer pumps the job (``Job.pump``); the
 renders run in a worker thread (no bpy there), ESC or ``bt4d.cancel_render_path`` stops

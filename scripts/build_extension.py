@@ -7,7 +7,7 @@ script runs it directly: same manifest validation, same ``[build]`` rules
 (``paths_exclude_pattern``), same zip layout.
 
     .venv/bin/python scripts/build_extension.py                 # -> dist/bullettime4d-<version>.zip
-    .venv/bin/python scripts/build_extension.py --output-dir /tmp/out
+    .venv/bin/python scripts/build_extension.py --output-dir dist
     .venv/bin/python scripts/build_extension.py --validate-only
 """
 from __future__ import annotations

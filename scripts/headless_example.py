@@ -2,8 +2,8 @@
 
 Runs the add-on's own operators, exactly as the sidebar buttons do, without a UI:
 
-    .venv/bin/python scripts/headless_example.py --capture demo_capture --out /tmp/x --seconds 20
-    blender --background --python scripts/headless_example.py -- --capture demo_capture --out /tmp/x
+    .venv/bin/python scripts/headless_example.py --capture demo_capture --out OUT --seconds 20
+    blender --background --python scripts/headless_example.py -- --capture demo_capture --out OUT
 
 1. ``bpy.ops.bt4d.import_capture``     cameras, frame rate and frame range from the capture
 2. ``bpy.ops.bt4d.reconstruct``        trains (synchronously in background mode), evaluates

@@ -4,7 +4,7 @@
 Run with the project's Python (``bpy`` is the Blender module)::
 
     .venv/bin/python scripts/make_capture.py --out demo_capture
-    .venv/bin/python scripts/make_capture.py --out /tmp/big --preset large
+    .venv/bin/python scripts/make_capture.py --out big_capture --preset large
 
 Scenes, lit by a sharp sun plus an even sky: ``classic`` (presets demo, large, fast;
 ``capture_classic.py``): brick wall, checker floor, a spinning cube, a swinging striped

@@ -128,7 +128,7 @@ def test_guided_main_variants_switch_the_old_paths_and_restore_them():
 
 def test_refresh_before_variant_is_the_old_refresh_periods():
     """``refresh-before`` trains with the guided step's caches refreshed as before (every 10
-    steps); the defaults are the new periods (README, "The guided step's per-run work")."""
+    steps); the defaults are the new periods (docs/experiments/benchmark-history.md "The guided step's per-run work")."""
     from engine.train.guidance import quiet_curves, spike_flow, spike_flow_cache
 
     assert (spike_flow.SURFACE_EVERY, quiet_curves.REFRESH, spike_flow_cache.UPSAMPLE) == (30, 50, 2)
@@ -139,7 +139,7 @@ def test_refresh_before_variant_is_the_old_refresh_periods():
 
 def test_flow_inline_variant_computes_the_flows_in_the_step():
     """``flow-inline`` is the flow term without its prefetch worker (the default has one, two
-    intervals ahead: README, "The guided step's per-run work")."""
+    intervals ahead: docs/experiments/benchmark-history.md "The guided step's per-run work")."""
     from engine.train.guidance import spike_flow_cache
 
     assert spike_flow_cache.PREFETCH == 2

@@ -1,4 +1,4 @@
-"""Births with temporal opacity (engine.train.motion.births; README "Motion representation")."""
+"""Births with temporal opacity (engine.train.motion.births; docs/experiments/motion-representation.md "Motion representation")."""
 from __future__ import annotations
 
 import json

@@ -1,5 +1,5 @@
 """The numba kernels give the same bits when compiled in this process as when loaded from
-numba's cache by a later one (README "Reproducible across numba's cache").
+numba's cache by a later one (docs/experiments/rasterizer.md "Reproducible across numba's cache").
 
 Found in issue 13's review: with ``fastmath`` "reassoc" in the rasterizer's backward tile
 kernel, a process that compiled ``rasterize_bwd`` got other gradients than every later

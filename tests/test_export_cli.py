@@ -60,7 +60,7 @@ def test_compact_is_much_smaller_than_the_raw_arrays(run_dir, tmp_path):
     assert main(["export", str(run_dir), "--format", "compact", "--fps", "100", "--out", str(tmp_path / "a.bt4c")]) == 0
     raw = 21 * sum(v.nbytes for v in splats_at(load_run(run_dir).model, 0.0).values())
     # every Gaussian of this stand-in moves, turns and recolours at random: a hard case
-    # (on the trained demo run the ratios are 100x and 16x, README "Export")
+    # (on the trained demo run the ratios are 100x and 16x, docs/experiments/export-and-lpips.md "Export")
     size = (tmp_path / "a.bt4c").stat().st_size
     assert size * 10 < raw and size * 3 < (tmp_path / "a.npz").stat().st_size
 

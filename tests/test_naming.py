@@ -1,4 +1,4 @@
-"""Spelling of identifiers: *colour*, except the names listed here (README, Layout)."""
+"""Spelling of identifiers: *colour*, except the names listed here (docs/architecture.md, Conventions)."""
 from __future__ import annotations
 
 import io

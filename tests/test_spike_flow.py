@@ -219,7 +219,7 @@ def test_warm_flows_start_from_the_grid_instant_one_step_closer():
     backward) pair to the grid instant one step closer to that RGB instant, computed first and
     once; only chain ends with a successor are kept (grid 0.125, 0.15, 0.175 in [0.1, 0.2])."""
     sup, calls = _fake_supervision()
-    assert get_preset("fast").spike_flow.warm  # on by default (README)
+    assert get_preset("fast").spike_flow.warm  # on by default
     sup.flow(0.2, 0.125)  # back from 0.2: 0.175 from zero, then 0.15, then 0.125
     assert [round(t, 6) for _, t in calls] == [0.175, 0.15, 0.125]
     assert sup.inits[0] is None
@@ -237,7 +237,7 @@ def test_warm_flows_start_from_the_grid_instant_one_step_closer():
 
 def test_switch_off_builds_no_term():
     cfg = get_preset("fast", {"spike_flow_weight": 0.0})
-    assert get_preset("fast").spike_flow.weight == 1.0  # on by default (README)
+    assert get_preset("fast").spike_flow.weight == 1.0  # on by default
     stream = types.SimpleNamespace(c2w=np.eye(4), intrinsics=object())
     guid = types.SimpleNamespace(renderer=object(), stream=stream)
     tr = types.SimpleNamespace(cfg=cfg, spike_guidance=guid)
@@ -371,7 +371,7 @@ def _dis_spy(monkeypatch, **over):
 @pytest.mark.parametrize("upsample", [1, 2])
 def test_estimate_runs_dis_at_the_configured_upsampling(upsample, monkeypatch):
     """``spike_flow_upsample`` reaches the flow pair (DIS on the grey images upsampled that many
-    times): the term's flows are the ones the README's EPE figures measured."""
+    times): the term's flows are the ones docs/experiments/spike-flow.md's EPE figures measured."""
     sup, seen = _dis_spy(monkeypatch, spike_flow_upsample=upsample, spike_flow_prefetch=0)
     sup.estimate(0.1, 0.15)
     assert [kw["upsample"] for kw in seen] == [upsample]

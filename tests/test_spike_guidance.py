@@ -331,7 +331,7 @@ def test_fine_encoder_every_reaches_the_encoder_and_each_step_ticks_it(cap, froz
     from engine.train.config import get_preset
     from engine.train.loop.trainer import Trainer
 
-    assert get_preset("fast").spike.fine_frozen_encoder  # the default (README, Spike guidance)
+    assert get_preset("fast").spike.fine_frozen_encoder  # the default (docs/experiments/spike-guidance.md)
     from engine.train.guidance import spike_guidance
 
     monkeypatch.setattr(spike_guidance, "FINE_ENCODER_EVERY", 50)

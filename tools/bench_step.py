@@ -285,7 +285,7 @@ def add_arguments(parser) -> None:
 # Issue 13's speed-ups that bench-step can switch off, to measure before / after in one
 # process (a shared machine's load changes between processes).
 # A variant may also patch the run's TrainConfig (``overrides``): switches that change what
-# is trained are measured here for speed only (their quality: README, Spike guidance), and
+# is trained are measured here for speed only (their quality: docs/experiments/spike-guidance.md), and
 # name module attributes to swap for the block (``patches``: {(module, name): value}).
 def _norm_flow_length(f):
     return f.norm(dim=1, keepdim=True)
@@ -319,7 +319,7 @@ VARIANTS = {
                      "patches": {(spike_guidance, "FINE_ENCODER_EVERY"): 1},
                      "overrides": {"fine_frozen_encoder": False, "between_every": 1}},
     "between2": {"doc": "between_every=2: a between-frame render every other step (not the default: "
-                        "-0.7 dB on moving pixels, README)", "hexplane_sampler": "auto",
+                        "-0.7 dB on moving pixels, docs/experiments/spike-guidance.md)", "hexplane_sampler": "auto",
                  "overrides": {"between_every": 2}},
     "fine-nokeep": {"doc": "spike windows encoded at every render, as before EncodedWindows",
                     "hexplane_sampler": "auto", "patches": {(spike_guidance, "FINE_ENCODER_EVERY"): 0}},

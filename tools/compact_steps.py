@@ -6,7 +6,7 @@ rate, so every eval frame is a stored instant), encodes them with ``compact.DEFA
 times each scale, decodes, and renders every eval frame of the capture from the exact
 splats and from the decoded ones. Prints per scale: size, ratio to the raw float32 arrays,
 encode seconds, eval PSNR (exact, decoded, loss) and the decoded render's PSNR against the
-exact render ("fidelity"). The README's *Export* figures come from this command.
+exact render ("fidelity"). The figures of docs/experiments/export-and-lpips.md come from this command.
 """
 from __future__ import annotations
 

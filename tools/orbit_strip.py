@@ -36,6 +36,7 @@ import argparse
 import json
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -56,7 +57,8 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", default=str(REPO_ROOT / "runs" / "demo"), help="run folder (default runs/demo)")
     p.add_argument("--capture", default=None, help="capture folder (default: the one run.json names)")
-    p.add_argument("--out", default="/tmp/bt4d_orbit_strip", help="folder for the rendered frames")
+    p.add_argument("--out", default=str(Path(tempfile.gettempdir()) / "bt4d_orbit_strip"),
+                   help="folder for the rendered frames")
     p.add_argument("--strip", default=str(REPO_ROOT / "docs" / "orbit_demo.png"), help="strip image (PNG)")
     p.add_argument("--table", default=None, help="coverage table (Markdown; default: --strip with .md)")
     p.add_argument("--degrees", type=float, default=30.0, help="azimuth range: -degrees .. +degrees")

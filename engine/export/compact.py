@@ -20,7 +20,7 @@ Default steps (``DEFAULT_STEPS``; ``means`` is relative to the scene extent = la
 the first instant's bounding box): means 2e-4 x extent, quaternion components (after
 normalising) 1/512, log-scales 1/128, opacity logits 1/32, SH coefficients 1/256 (colour units,
 i.e. the coefficient step is that / SH_C0 for the DC term). On the demo run these cost
-<0.2 dB (README, *Export*); ``steps=`` overrides them per attribute.
+<0.2 dB (docs/experiments/export-and-lpips.md); ``steps=`` overrides them per attribute.
 
 File layout (little-endian)::
 

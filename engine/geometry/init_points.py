@@ -1,6 +1,6 @@
 """Initial point cloud for the Gaussians.
 
-Three sources, in order of preference for ``method="auto"`` (see README for the measured
+Three sources, in order of preference for ``method="auto"`` (docs/experiments/two-view-geometry.md has the measured
 comparison):
 
 * ``ply``    -- the capture's ``points.ply`` (e.g. from DUSt3R or the scene generator);

@@ -1,5 +1,5 @@
 """The older hand-written two-view stereo (``init=planesweep``; issue 14 replaced it by
-OpenCV semi-global matching in :mod:`engine.geometry.stereo` as the default -- README,
+OpenCV semi-global matching in :mod:`engine.geometry.stereo` as the default -- docs/experiments/two-view-geometry.md,
 "Two-view geometry", has the comparison). Also the home of ``rgb_cameras`` and
 ``fill_depth``, which the SGBM path shares.
 

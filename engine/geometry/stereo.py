@@ -45,7 +45,7 @@ class StereoUnavailable(ValueError):
 
 # SGBM settings; the block size and penalties follow OpenCV's stereo_match sample
 # (P1 = 8 cn b^2, P2 = 32 cn b^2), LR tolerance 1 px (disp12MaxDiff's usual value).
-# Outlier removal (README, Two-view geometry; novel scene, fused over 7 instants: p90 depth
+# Outlier removal (docs/experiments/two-view-geometry.md; novel scene, fused over 7 instants: p90 depth
 # error 24.6 -> 8.8 %, pixels off by > 5 % 29 -> 15 %; demo p90 4.9 -> 2.9 %): replicate_border
 # (rectified margin = nearest border pixel, validity eroded by half a block), occlusion_margin
 # (stereo_filters.half_occlusion_band, px; -1 off), clip_far (no depth beyond the rig's range).
@@ -476,7 +476,7 @@ def backdrop_points(fused: FusedDepth, filled_depth: np.ndarray, fraction: float
     """Points beyond the image borders of one camera (a ring ``fraction`` x the image size
     wide): depth continued from the (hole-filled) static depth by
     :func:`extrapolate_inverse_depth`, colour the nearest border pixel's. What a viewer sees
-    where no train camera looked (README, "No black holes"). Returns (xyz [N,3], rgb [N,3])."""
+    where no train camera looked (docs/experiments/two-view-geometry.md "No black holes"). Returns (xyz [N,3], rgb [N,3])."""
     k = fused.view.intrinsics
     px, py = int(round(fraction * k.width)), int(round(fraction * k.height))
     if px <= 0 and py <= 0:

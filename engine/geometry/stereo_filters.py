@@ -2,7 +2,7 @@
 
 SGBM's left-right check keeps what both directions agree on, and two of its errors agree:
 the half-occluded band beside a foreground edge takes the foreground's disparity in both
-directions (README, Two-view geometry: the novel scene's p90 depth error 25-32 %).
+directions (docs/experiments/two-view-geometry.md: the novel scene's p90 depth error 25-32 %).
 :func:`half_occlusion_band` finds it from the disparity map alone.
 """
 from __future__ import annotations

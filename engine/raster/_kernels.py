@@ -505,7 +505,7 @@ GX, GY, GA, GB, GC, GO, GF0, GF1, GF2, GF3 = [BG + j * GL for j in range(GN)]
 # 200 demo steps later, 23,943 against 24,305 Gaussians) than every later run; without it the
 # bits are the same either way (tests/test_compile_reproducible.py). Cost measured at
 # 320x240 / 50k, load ~1: composite backward 9.0 -> 10.5 ms wall, forward + backward ~+1.6 ms
-# (README "Reproducible across numba's cache").
+# (docs/experiments/rasterizer.md "Reproducible across numba's cache").
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "nsz", "arcp"})
 def _bwd_tile8(tile, packed, spans, offsets, height, width, tiles_x, n_tiles, amax, final_t, last_i, v_feat,
                v_alpha, v_isect):

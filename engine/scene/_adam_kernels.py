@@ -25,7 +25,7 @@ install_cache_locator(__name__)
 # vectorises them: 8 floats per instruction); ``error_model="numpy"``: IEEE division with no
 # zero check, which would stop the vectoriser too. ``parallel=True`` on these loops measured
 # slower (CPU time) on this 2-core machine; :func:`step_threads` instead gives each of numba's
-# threads one run of whole blocks of :func:`step` (README, "Adam on numba's threads").
+# threads one run of whole blocks of :func:`step` (docs/experiments/benchmark-history.md "Adam on numba's threads").
 
 
 @njit(cache=True, nogil=True)
@@ -99,7 +99,7 @@ def step_threads(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, bufs, per):
     (whole blocks of ``bufs.shape[1]``) with scratch ``bufs[t]``. Elementwise: the same
     numbers as :func:`step`. numba's own pool, not Python threads: after the rasterizer's
     parallel loops its OpenMP workers spin-wait on the other core, and a Python thread
-    competing with them measured slower than one thread (README, "Adam on numba's threads")."""
+    competing with them measured slower than one thread (docs/experiments/benchmark-history.md "Adam on numba's threads")."""
     n = p.size
     for t in prange(bufs.shape[0]):
         s = t * per

@@ -10,7 +10,7 @@
   paper's), ``False`` trains it jointly. Training runs freeze it by default
   (``TrainConfig.fine_frozen_encoder``, issue 13): each window is then encoded once per run
   (:class:`EncodedWindows`) instead of twice per step, forward and backward, and on the
-  demo it scored no worse (two seeds, README "Spike guidance").
+  demo it scored no worse (two seeds, docs/experiments/spike-guidance.md "Spike guidance").
 * Time encoding (Eq. 8): sinusoidal, on the time relative to the window,
   ``(t - T1) / (T2 - T1)`` in [0, 1] (the same for the sub-window tokens and the query).
 * MHA (Eq. 9): a Transformer encoder layer (``nn.MultiheadAttention`` + feed-forward) over

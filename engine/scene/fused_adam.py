@@ -4,7 +4,7 @@ With per-Gaussian trajectories the Gaussians carry ~190 floats each (133 of them
 curves' control points, ``engine.scene.trajectory``), and ``torch.optim.Adam``'s CPU
 single-tensor step walks every parameter seven times (``lerp_``, ``mul_``, ``addcmul_``,
 ``sqrt``, ``div``, ``add_``, ``addcdiv_``): 15-16 ms of a 80-90 ms RGB deformation step on
-the demo (README, step speed), most of it in ``sqrt``: torch's CPU square root (MKL)
+the demo (docs/experiments/benchmark-history.md), most of it in ``sqrt``: torch's CPU square root (MKL)
 takes a slow path on zeros, and ~70 % of the curves' moments are zero (columns no render
 has reached yet). :class:`FusedAdam` is ``torch.optim.Adam`` (same constructor, state,
 ``state_dict``, so densification's state surgery and checkpoints are unchanged) whose
@@ -43,7 +43,7 @@ BLOCK = 16384  # one pass's block: 5 arrays x 64 KiB stay in the 512 KiB L2 (8k-
 # False: a parameter's one-pass update runs on one thread (bench-step's "adam-serial"). True: a
 # large one (the curves) is cut into runs of whole blocks, one per numba thread (at most
 # MAX_THREADS; _adam_kernels.step_threads): the pass is memory bound and one core does not fill
-# the memory bus (README, "Adam on numba's threads"). Elementwise: the same numbers.
+# the memory bus (docs/experiments/benchmark-history.md "Adam on numba's threads"). Elementwise: the same numbers.
 PARALLEL = True
 PARALLEL_MIN = 1 << 18  # floats: below this, the thread hand-off costs more than it saves
 MAX_THREADS = 4

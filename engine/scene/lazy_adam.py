@@ -5,7 +5,7 @@ of an RGB interval, K = 3 (F - 1) + 1 of them, while a step's renders read at mo
 at an RGB instant). Dense Adam (:class:`engine.scene.fused_adam.FusedAdam`) still updates
 every entry of every curve at every step: an entry without a gradient keeps decaying its
 moments and moving on its momentum. On a 1 s capture (K = 88) that is a third of the RGB
-step; a 3 s capture triples it (README, "A longer capture").
+step; a 3 s capture triples it (docs/experiments/benchmark-history.md "A longer capture").
 
 :class:`LazyCurveAdam` updates a curve's columns only when a step touched them, and then
 first catches up on the steps they skipped, in closed form. With no gradient for ``s``
@@ -64,7 +64,7 @@ FUSED = True
 CLEAR_BUFFERS = True
 # False: a render reads a lazy column where its last touch left it, the skipped steps' momentum
 # landing at its next touch (the first version: train views -0.08 dB on average over eight
-# 1000-step runs, README "Lazy curve Adam"); True: the read catches the column up first
+# 1000-step runs, docs/experiments/benchmark-history.md "Lazy curve Adam"); True: the read catches the column up first
 READ_CATCH_UP = True
 # False: the read's catch-up also decays the moments (and writes them), as first built; True: the
 # values alone, the moments' decay left to the column's next step or settle (same numbers: the decay

@@ -27,7 +27,7 @@ Gaussian count changes and every ``REFRESH`` steps (junctions move slowly).
 Holding the junctions joined by quiet segments at their mean as well (quiet junctions) was
 measured and dropped (docs/experiments/quiet-curves.md).
 
-Measured (README "Quiet curves"; 1000 fast steps, seeds 0 / 1, full - RGB-only between RGB
+Measured (docs/experiments/quiet-curves.md "Quiet curves"; 1000 fast steps, seeds 0 / 1, full - RGB-only between RGB
 frames at the eval cameras, off -> on): demo -0.24 / -0.27 -> +0.30 / +0.24 dB, fast +0.13 /
 +0.11 -> +0.20 / +0.43, ``between`` +1.53 / +1.26 -> +1.47 / +1.38 (moving pixels +2.49 / +2.15
 -> +2.28 / +2.15). Dilation 1 block: post hoc (curves flattened after training) 2 / 1 / 0

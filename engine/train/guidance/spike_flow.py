@@ -26,7 +26,7 @@ the along-ray component stays with the curves' smoothness (``traj_inner_weight``
 Once per RGB interval (``fit_interval``, ``spike_flow_fit``) the flow also bends the visible
 curves' inner control points by least squares and, with ``spike_flow_junctions`` (on: ``all``),
 puts their place at the interval's right end where the flow says (``flow_junctions``: the train
-cameras' 30 FPS carry misses fast jumps; README "The fast scene's ghost").
+cameras' 30 FPS carry misses fast jumps; docs/experiments/flow-junctions.md "The fast scene's ghost").
 
 Flows are computed once per (reference instant, between instant) pair: the between instant
 is rounded to ``spike_flow_steps`` points per RGB interval and the reference is the nearer
@@ -34,7 +34,7 @@ admitted RGB instant, so a run holds at most ``2 x steps x intervals`` tiny flow
 spike view is the sensor's resolution). Weight ``spike_flow_weight`` (0: off, the term is
 not built). Needs per-Gaussian trajectories and a spike loss (it rides on the spike
 guidance's between-frame instants); nothing with ``rgb_only`` or without a spike stream.
-On by default (weight 1; README "Spike-view optical flow on the curves": on the ``between``
+On by default (weight 1; docs/experiments/spike-flow.md "Spike-view optical flow on the curves": on the ``between``
 scene between RGB frames +0.69 / +0.44 dB over the spike loss alone, seeds 0 / 1, the visible
 cube's image-plane error 31.5 -> 11.8 mm; demo +0.14 / +0.18, fast +0.28 / +0.14, novel -0.02 / +0.56 dB).
 """
@@ -290,7 +290,7 @@ class SpikeFlowSupervision(FlowCache):
         w = torch.stack(wts)
         dD = fit_inner_residuals(torch.stack(cur), torch.stack(tgt), w, us.to(params.device))
         enough = w.sum(0) >= 0.5 * n  # observed at half the instants at least
-        # the flow's noise on a still surface (0.3 px at the default window, README) is not motion
+        # the flow's noise on a still surface (0.3 px at the default window, docs/experiments/spike-flow.md) is not motion
         still = torch.stack(mags).median(0).values < float(MIN_PX)
         dD[still] = 0.0
         full = torch.zeros(params.shape[0], 2, 3, dtype=params.dtype, device=params.device)
@@ -329,10 +329,10 @@ class SpikeFlowSupervision(FlowCache):
 
         Why: the train cameras' carry (``traj_carry=flow``) finds the next RGB instant by a
         30 FPS optical flow that misses the fast scene's jumps (the ball ~55 px per frame;
-        README "Births that move"), so curves and births stay behind and the object between two
+        docs/experiments/motion-representation.md "Births that move"), so curves and births stay behind and the object between two
         RGB instants is a cross-fade of two copies (the ghost). The spike view sees the whole
         motion at 20 kHz. Depth is the Gaussian's at ``ref``: the curve's own depth at ``other``
-        (the stereo-lifted carry) measured worse (README). With ``spike_flow_junctions_hidden``
+        (the stereo-lifted carry) measured worse (docs/experiments/flow-junctions.md). With ``spike_flow_junctions_hidden``
         (``extent`` > 0, not ``born_only``) the Gaussians it does not see take the change of the
         nearest moved one within ``traj_carry_hidden`` x ``extent`` (the back of a spinning ball),
         except those born at ``other``. Returns counts for run.json."""

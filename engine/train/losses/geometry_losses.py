@@ -19,8 +19,7 @@ docs/experiments/two-view-geometry.md):
   restricted to the pixels the step's own view sees (``seen_from``, at the orbit's pivot
   depth), is the loss; only the Gaussians the step's own render draws get its gradient
   (``Model4D.render(grad_rows=...)``), and only their ``cover_grad`` attributes. A floor seen at a grazing angle
-  by both train cameras is made of blobs that leave gaps 20 deg above it (README "More
-  steps, worse novel views"); the photometric loss never sees those gaps.
+  by both train cameras is made of blobs that leave gaps 20 deg above it (docs/experiments/overfit-more-steps.md); the photometric loss never sees those gaps.
 Functions take and return tensors with documented shapes; the trainer calls
 :func:`geometry_loss_terms` (loss list) and :func:`geometry_post_step_hooks`.
 """
@@ -96,7 +95,7 @@ def cover_kernel_px(fraction: float, height: int, width: int) -> int:
     resolution (a 1080x720 capture renders 540x360 at ``COVER_SCALE`` 0.5, where the 9 px of the
     test scenes' 80x60 renders would close only cracks a fifth as wide). 0.125 keeps the 9 px
     measured on those scenes (80x60 and 96x72 renders); at 320x240 (160x120 renders) 9, 15 and
-    19 px scored within 0.3 dB of each other, without a trend (README)."""
+    19 px scored within 0.3 dB of each other, without a trend (docs/experiments/cover-loss.md)."""
     return max(3, int(float(fraction) * min(int(height), int(width)) + 0.5) | 1)
 
 

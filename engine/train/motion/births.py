@@ -1,8 +1,7 @@
 """Births: new Gaussians at an admitted RGB instant, where the render still misses the frame.
 
 Why: on the fast scene the per-Gaussian curves of a fast, rotating object do not reach its
-new place at late instants, and the optimiser answers with lower opacity (ghosts: README
-"Motion representation", time-curriculum table). Densification only clones existing
+new place at late instants, and the optimiser answers with lower opacity (ghosts: docs/experiments/motion-representation.md "Motion representation", time-curriculum table). Densification only clones existing
 Gaussians, curves included, so nothing can start at the new place. Spacetime Gaussians
 (Li et al., CVPR 2024) give each Gaussian a temporal opacity and add points per frame; here,
 when the time curriculum admits RGB instant ``t`` (after the carry has moved the curves
@@ -25,19 +24,18 @@ a one-off study, docs/experiments/ (births)). With ``birth_motion`` each born Ga
 the stereo depth there (the carry's :func:`carry_by_flow`): ``"lk"`` / ``"dis"`` optical flow,
 ``"match"`` one translation per born region (:func:`component_flow`); those it cannot decide,
 and all of them with ``"nearest"``, take the displacement of the nearest Gaussian alive at
-``T_j`` within ``traj_carry_hidden`` x extent. Measured at 1000 steps (README "Births that
-move"): none of them pays yet.
+``T_j`` within ``scene_flow.CARRY_HIDDEN`` x extent. Measured at 1000 steps
+(docs/experiments/motion-representation.md, "Births that move"): none of them pays yet.
 
 How long they live (``birth_static_lifespan``, on at 16 with ``birth_depth_guard`` 0.8): the temporal std barely trains
 (fast, 1000 steps: median 0.45 interval for an initial 0.5), and 73 % of the fast scene's births
 sit on pixels a neighbouring RGB instant of the same camera repeats (:func:`unchanged_pixels`):
 a static surface the render missed, which should not fade between instants. Those get
 ``birth_static_lifespan`` x the frame interval (16: fast +0.56 / +0.12 dB between instants,
-demo +0.14 / +0.37, ``between`` -0.04 / +0.01; README "How long born Gaussians live").
+demo +0.14 / +0.37, ``between`` -0.04 / +0.01; docs/experiments/motion-representation.md "How long born Gaussians live").
 Where the stereo match is wrong (periodic texture, low resolution) such a Gaussian floats in
 front of the surface it shows for all that time; ``birth_depth_guard`` drops the static births
-whose stereo depth lies well in front of an opaque render (:func:`stereo_in_front`; README
-"Births at a wrong stereo depth").
+whose stereo depth lies well in front of an opaque render (:func:`stereo_in_front`; docs/experiments/motion-representation.md "Births at a wrong stereo depth").
 """
 from __future__ import annotations
 
