@@ -5,7 +5,8 @@ cache lines per row, rows ``K C`` floats apart. Neither of the hardware prefetch
 (the same load instruction steps within a row, then jumps to the next one), so each line is a
 full memory latency, with few misses in flight: on a 1 s capture (70k Gaussians, K = 91) the lazy
 Adam step over a guided step's 7 columns took 2.6x as long as with the lines of the row 8 ahead
-requested first, the curve evaluation over a segment's 4 columns 3x (docs/experiments/benchmark-history.md, "Prefetching the
+requested first, the curve evaluation over a segment's 4 columns 3x (docs/experiments/benchmark-history.md,
+"Prefetching the
 curves' rows"). A prefetch changes no value. Imported only by kernel modules (numba is loaded on
 first use, never by ``import engine``).
 """

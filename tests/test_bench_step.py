@@ -128,7 +128,8 @@ def test_guided_main_variants_switch_the_old_paths_and_restore_them():
 
 def test_refresh_before_variant_is_the_old_refresh_periods():
     """``refresh-before`` trains with the guided step's caches refreshed as before (every 10
-    steps); the defaults are the new periods (docs/experiments/benchmark-history.md "The guided step's per-run work")."""
+    steps); the defaults are the new periods (docs/experiments/benchmark-history.md "The guided step's per-run
+    work")."""
     from engine.train.guidance import quiet_curves, spike_flow, spike_flow_cache
 
     assert (spike_flow.SURFACE_EVERY, quiet_curves.REFRESH, spike_flow_cache.UPSAMPLE) == (30, 50, 2)

@@ -1,4 +1,5 @@
-"""Births with temporal opacity (engine.train.motion.births; docs/experiments/motion-representation.md "Motion representation")."""
+"""Births with temporal opacity (engine.train.motion.births; docs/experiments/motion-representation.md "Motion
+representation")."""
 from __future__ import annotations
 
 import json

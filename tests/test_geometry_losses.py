@@ -328,7 +328,8 @@ def test_render_grad_attrs_limits_the_gradient_to_those_attributes(tmp_path):
 
 def test_cover_grad_reaches_the_term_render(tmp_path, monkeypatch):
     """The cover term renders with ``grad_attrs`` from ``cover_grad``: all attributes by default,
-    only positions and opacities with ``opacities+means`` (docs/experiments/cover-loss.md "What the term may change")."""
+    only positions and opacities with ``opacities+means`` (docs/experiments/cover-loss.md "What the term may
+    change")."""
     from engine.io.capture import load_capture
     from engine.scene.model import Model4D
     from engine.train.config import get_preset

@@ -620,13 +620,15 @@ def test_deformation_re_estimate_keeps_the_stage(tiny_capture):
 
 def test_budget_plans_at_most_the_step_cap(tiny_capture):
     """A --seconds budget plans at most budget_step_cap x iterations steps (more overfit the two views:
-    docs/experiments/flow-junctions.md "eq16"); cap 0 plans what fits; the deformation stage's re-plans and fills keep to it."""
+    docs/experiments/flow-junctions.md "eq16"); cap 0 plans what fits; the deformation stage's re-plans and fills
+    keep to it."""
     from engine.train.loop.budget import reestimate_deform_steps, step_cap
     from engine.train.loop.trainer import Trainer
 
     cfg = get_preset("fast")
     assert step_cap(cfg) == 2 * cfg.schedule.iterations == 2000
-    # balanced and quality lose LPIPS at twice their steps (docs/experiments/flow-junctions.md "The step cap"): 1.5x and 1x
+    # balanced and quality lose LPIPS at twice their steps (docs/experiments/flow-junctions.md "The step cap"):
+    # 1.5x and 1x
     assert step_cap(get_preset("balanced")) == 3750 and step_cap(get_preset("quality")) == 3000
     assert steps_for_budget(1e6, 0.01, 0.01, cfg) == 2000
     assert steps_for_budget(60, 0.05, 0.1, cfg) < 2000  # a budget under the cap: unchanged

@@ -8,7 +8,8 @@ Issue 11: where a model loses between RGB frames. Each eval frame's pixels are s
 farther); each frame by its phase in its RGB interval, ``min(u, 1 - u)`` with ``u`` the
 fraction of the interval: *inst* (an RGB instant), *q1* (< 0.2), *q2* (< 0.35), *half*. A cell is
 the PSNR of the squared error pooled over its pixels. Prints one markdown table per run.
-(docs/experiments/flow-junctions.md "Where the demo loses to the Interpolate baseline" measured this with a scratch script of
+(docs/experiments/flow-junctions.md "Where the demo loses to the Interpolate baseline" measured this with a scratch
+script of
 the same rule.)
 """
 from __future__ import annotations

@@ -476,7 +476,8 @@ def backdrop_points(fused: FusedDepth, filled_depth: np.ndarray, fraction: float
     """Points beyond the image borders of one camera (a ring ``fraction`` x the image size
     wide): depth continued from the (hole-filled) static depth by
     :func:`extrapolate_inverse_depth`, colour the nearest border pixel's. What a viewer sees
-    where no train camera looked (docs/experiments/two-view-geometry.md "No black holes"). Returns (xyz [N,3], rgb [N,3])."""
+    where no train camera looked (docs/experiments/two-view-geometry.md "No black holes"). Returns (xyz [N,3], rgb
+    [N,3])."""
     k = fused.view.intrinsics
     px, py = int(round(fraction * k.width)), int(round(fraction * k.height))
     if px <= 0 and py <= 0:

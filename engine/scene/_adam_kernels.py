@@ -99,7 +99,8 @@ def step_threads(p, g, m, v, w1, b2, c2, bc2s, eps, neg_step, bufs, per):
     (whole blocks of ``bufs.shape[1]``) with scratch ``bufs[t]``. Elementwise: the same
     numbers as :func:`step`. numba's own pool, not Python threads: after the rasterizer's
     parallel loops its OpenMP workers spin-wait on the other core, and a Python thread
-    competing with them measured slower than one thread (docs/experiments/benchmark-history.md "Adam on numba's threads")."""
+    competing with them measured slower than one thread (docs/experiments/benchmark-history.md "Adam on numba's
+    threads")."""
     n = p.size
     for t in prange(bufs.shape[0]):
         s = t * per

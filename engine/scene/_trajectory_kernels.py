@@ -20,7 +20,8 @@ install_cache_locator(__name__)
 # Each kernel's work is independent per row: a row function shared by a serial driver (the name
 # the callers knew) and a parallel one over numba's threads (``*_rows``), the same arithmetic per
 # entry, so the same numbers. The curves are strided reads and writes of a few columns per row,
-# bound by memory latency: two threads keep twice the misses in flight (docs/experiments/benchmark-history.md "A longer capture").
+# bound by memory latency: two threads keep twice the misses in flight (docs/experiments/benchmark-history.md "A
+# longer capture").
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -9,7 +9,9 @@ a gradient through the field this way, so it is kept). The kernels are in
 :mod:`engine.scene._hexplane_kernels`; numba is imported lazily, ``available()`` says
 whether it can be used (the reference path is the fallback).
 
-Why: in a deformation step the field's backward was the largest part (40-42 %, docs/experiments/benchmark-history.md "Where a training step goes"): ``grid_sample``'s CPU backward scatters one point and one
+Why: in a deformation step the field's backward was the largest part (40-42 %,
+docs/experiments/benchmark-history.md "Where a training step goes"): ``grid_sample``'s CPU backward scatters one
+point and one
 channel plane at a time and computes the coordinate gradient through a separate pass
 per plane; here one pass per level reads each texel's C channels contiguously (planes
 stored channels-last) and writes the plane and coordinate gradients together.

@@ -6,7 +6,8 @@ pruning used to rebuild each of them with ``torch.cat`` / boolean indexing: ever
 RGB instant wrote the whole state into fresh allocations. glibc serves blocks above 32 MiB from
 fresh ``mmap`` pages, so each rebuild also paid a page fault per 4 KiB written: on a 1 s capture
 (30 RGB instants, K = 88, ~70k Gaussians) a birth round's ``append`` took ~120 ms, and the
-admissions were 23 % of the RGB step (``bench-step`` on a long capture, docs/experiments/benchmark-history.md "Rows that grow in place").
+admissions were 23 % of the RGB step (``bench-step`` on a long capture, docs/experiments/benchmark-history.md "Rows
+that grow in place").
 
 Here a tensor [n, ...] is a view of the first n rows of a storage that may hold more:
 

@@ -5,7 +5,8 @@ The spike-view flow term (engine.train.guidance.spike_flow) needs DIS optical fl
 the spike stream only, never on the model: a data loader's work. Computed inside the step
 that first asks for them, they stalled that step (~150 ms for a chain of 15 pairs on the
 demo, 2 ms a guided step on average); on this worker they are computed while earlier steps
-run, on what the training step leaves idle (docs/experiments/benchmark-history.md "The flows computed ahead of the steps").
+run, on what the training step leaves idle (docs/experiments/benchmark-history.md "The flows computed ahead of the
+steps").
 
 Rules, so that what the worker computes is what the step would have computed:
 
@@ -22,7 +23,8 @@ The thread starts with the first job and exits when the queue is empty, so an id
 holds no thread. With ``nice`` > 0 it lowers its own scheduling priority (Linux: a thread has
 its own nice value) so that it runs on what the training threads leave idle instead of taking
 turns with them: numba's parallel regions wait for their slowest thread, and a flow sharing a
-core with one of them stalled the whole region (docs/experiments/benchmark-history.md "The flows computed ahead of the steps":
+core with one of them stalled the whole region (docs/experiments/benchmark-history.md "The flows computed ahead of
+the steps":
 the demo's 1000 steps +1.7 % wall at normal priority over 6 alternated pairs, -5.4 % at nice 19
 over 16, on a 2-core machine).
 """

@@ -290,7 +290,8 @@ class SpikeFlowSupervision(FlowCache):
         w = torch.stack(wts)
         dD = fit_inner_residuals(torch.stack(cur), torch.stack(tgt), w, us.to(params.device))
         enough = w.sum(0) >= 0.5 * n  # observed at half the instants at least
-        # the flow's noise on a still surface (0.3 px at the default window, docs/experiments/spike-flow.md) is not motion
+        # the flow's noise on a still surface (0.3 px at the default window, docs/experiments/spike-flow.md) is not
+        # motion
         still = torch.stack(mags).median(0).values < float(MIN_PX)
         dD[still] = 0.0
         full = torch.zeros(params.shape[0], 2, 3, dtype=params.dtype, device=params.device)
@@ -329,10 +330,12 @@ class SpikeFlowSupervision(FlowCache):
 
         Why: the train cameras' carry (``traj_carry=flow``) finds the next RGB instant by a
         30 FPS optical flow that misses the fast scene's jumps (the ball ~55 px per frame;
-        docs/experiments/motion-representation.md "Births that move"), so curves and births stay behind and the object between two
+        docs/experiments/motion-representation.md "Births that move"), so curves and births stay behind and the
+        object between two
         RGB instants is a cross-fade of two copies (the ghost). The spike view sees the whole
         motion at 20 kHz. Depth is the Gaussian's at ``ref``: the curve's own depth at ``other``
-        (the stereo-lifted carry) measured worse (docs/experiments/flow-junctions.md). With ``spike_flow_junctions_hidden``
+        (the stereo-lifted carry) measured worse (docs/experiments/flow-junctions.md). With
+        ``spike_flow_junctions_hidden``
         (``extent`` > 0, not ``born_only``) the Gaussians it does not see take the change of the
         nearest moved one within ``traj_carry_hidden`` x ``extent`` (the back of a spinning ball),
         except those born at ``other``. Returns counts for run.json."""

@@ -15,7 +15,8 @@ Every flow is computed on that one thread, by the same code in the same order al
 (each grid instant's flow warm-started from the one a step closer to its RGB instant), so the
 cache holds the very arrays an inline computation gives (``tests/test_spike_flow.py``: equal
 flows and a bit-identical run). ``spike_flow_prefetch = 0`` computes inline, in the step, as
-before. Measured (docs/experiments/benchmark-history.md "The flows computed ahead of the steps"): inline, the flows were ~2 ms
+before. Measured (docs/experiments/benchmark-history.md "The flows computed ahead of the steps"): inline, the flows
+were ~2 ms
 of a demo guided step (~6 %), each chain a ~150 ms stall of the step that first needed it. Ahead,
 on a worker at normal priority, 1000 demo steps took +1.7 % wall time on this 2-core machine (six
 alternated pairs: the static stage paid what the guided stage saved); on the worker at nice
@@ -46,7 +47,9 @@ UPSAMPLE = 2
 FB_TOL = 0.5
 PREFETCH = 2
 GRAY_CACHE = 64  # grey images the flow term keeps (spike_flow_pairs.RecentGreys); a miss recomputes one
-FLOW_DTYPE = torch.float16  # cached flows (every pair is kept for the run; docs/experiments/benchmark-history.md "The guided step's per-run work")
+# cached flows (every pair is kept for the run; docs/experiments/benchmark-history.md "The guided step's
+# per-run work")
+FLOW_DTYPE = torch.float16
 # the prefetch worker's nice increment: it computes on what the step leaves idle (background.PriorityWorker)
 WORKER_NICE = 19
 

@@ -95,7 +95,8 @@ def steps_for_budget(seconds: float, t_static: float, t_deform: float, cfg: Trai
 def step_cap(cfg: TrainConfig) -> int | None:
     """The most steps a budget run plans: ``budget_step_cap`` x ``iterations`` (at least 20), or None
     (cap 0). Past it more steps cost the novel views: fast preset, 120 s budgets ran 2700-7300 steps and
-    2000 fixed steps scored higher at the eval cameras on 5 of 6 scene x model pairs (docs/experiments/flow-junctions.md "eq16");
+    2000 fixed steps scored higher at the eval cameras on 5 of 6 scene x model pairs
+    (docs/experiments/flow-junctions.md "eq16");
     a run the cap binds ends before its budget."""
     f = float(cfg.schedule.step_cap or 0.0)
     return max(20, int(round(f * int(cfg.schedule.iterations)))) if f > 0 else None

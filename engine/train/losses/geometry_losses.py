@@ -19,7 +19,8 @@ docs/experiments/two-view-geometry.md):
   restricted to the pixels the step's own view sees (``seen_from``, at the orbit's pivot
   depth), is the loss; only the Gaussians the step's own render draws get its gradient
   (``Model4D.render(grad_rows=...)``), and only their ``cover_grad`` attributes. A floor seen at a grazing angle
-  by both train cameras is made of blobs that leave gaps 20 deg above it (docs/experiments/overfit-more-steps.md); the photometric loss never sees those gaps.
+  by both train cameras is made of blobs that leave gaps 20 deg above it (docs/experiments/overfit-more-steps.md);
+  the photometric loss never sees those gaps.
 Functions take and return tensors with documented shapes; the trainer calls
 :func:`geometry_loss_terms` (loss list) and :func:`geometry_post_step_hooks`.
 """

@@ -1,7 +1,9 @@
 """Births: new Gaussians at an admitted RGB instant, where the render still misses the frame.
 
 Why: on the fast scene the per-Gaussian curves of a fast, rotating object do not reach its
-new place at late instants, and the optimiser answers with lower opacity (ghosts: docs/experiments/motion-representation.md "Motion representation", time-curriculum table). Densification only clones existing
+new place at late instants, and the optimiser answers with lower opacity (ghosts:
+docs/experiments/motion-representation.md "Motion representation", time-curriculum table). Densification only
+clones existing
 Gaussians, curves included, so nothing can start at the new place. Spacetime Gaussians
 (Li et al., CVPR 2024) give each Gaussian a temporal opacity and add points per frame; here,
 when the time curriculum admits RGB instant ``t`` (after the carry has moved the curves
@@ -32,10 +34,12 @@ How long they live (``birth_static_lifespan``, on at 16 with ``birth_depth_guard
 sit on pixels a neighbouring RGB instant of the same camera repeats (:func:`unchanged_pixels`):
 a static surface the render missed, which should not fade between instants. Those get
 ``birth_static_lifespan`` x the frame interval (16: fast +0.56 / +0.12 dB between instants,
-demo +0.14 / +0.37, ``between`` -0.04 / +0.01; docs/experiments/motion-representation.md "How long born Gaussians live").
+demo +0.14 / +0.37, ``between`` -0.04 / +0.01; docs/experiments/motion-representation.md "How long born Gaussians
+live").
 Where the stereo match is wrong (periodic texture, low resolution) such a Gaussian floats in
 front of the surface it shows for all that time; ``birth_depth_guard`` drops the static births
-whose stereo depth lies well in front of an opaque render (:func:`stereo_in_front`; docs/experiments/motion-representation.md "Births at a wrong stereo depth").
+whose stereo depth lies well in front of an opaque render (:func:`stereo_in_front`;
+docs/experiments/motion-representation.md "Births at a wrong stereo depth").
 """
 from __future__ import annotations
 
