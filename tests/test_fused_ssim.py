@@ -6,8 +6,8 @@ import pytest
 import torch
 from pytorch_msssim import ssim
 
+from engine.train.losses import fused_ssim as fs
 from engine.train.losses.fused_ssim import fused_ssim
-from engine.train.losses.terms import fused_ssim as fs
 
 
 def _msssim(p, t):

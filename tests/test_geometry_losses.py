@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from engine.cameras import Intrinsics, View, look_at_c2w
+from engine.train.losses import geometry_losses
 from engine.train.losses.geometry_losses import decay_visible_opacity
-from engine.train.losses.terms import geometry_losses
 
 W, H = 64, 48
 K = Intrinsics(W, H, 60.0, 60.0, W / 2, H / 2)
@@ -197,7 +197,7 @@ def test_cover_kernel_follows_the_render_resolution(tmp_path, monkeypatch):
     from engine.io.capture import load_capture
     from engine.train.config import get_preset
     from engine.train.loop.trainer import Trainer
-    from engine.train.losses.terms import geometry_losses as gl
+    from engine.train.losses import geometry_losses as gl
     from tools.synthetic import write_synthetic_capture
 
     frac = gl.COVER_KERNEL_FRAC

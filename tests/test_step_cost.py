@@ -12,7 +12,7 @@ import torch
 from engine.scene import trajectory as traj
 from engine.scene.model import TRAJ_MEANS
 from engine.train.guidance import spike_flow, spike_flow_pairs
-from engine.train.losses.terms import terms as losses
+from engine.train.losses import terms as losses
 
 pytestmark = pytest.mark.skipif(not traj.KERNELS.available(), reason="numba kernels unavailable")
 

@@ -114,7 +114,7 @@ def stepcost(args, knots) -> None:
     from engine.train.config import get_preset
     from engine.train.guidance import spike_flow, spike_flow_pairs
     from engine.train.loop.trainer import Trainer
-    from engine.train.losses.terms import terms as losses
+    from engine.train.losses import terms as losses
     from engine.train.motion import scene_flow
 
     gen = torch.Generator().manual_seed(1)

@@ -57,8 +57,8 @@ from engine.train.frames import interpolation
 from engine.train.guidance import quiet_curves, spike_flow, spike_flow_cache, spike_flow_pairs, spike_guidance
 from engine.train.loop.budget import warm_up_runtime
 from engine.train.loop.trainer import Trainer
-from engine.train.losses.terms import fused_ssim
-from engine.train.losses.terms import terms as losses
+from engine.train.losses import fused_ssim
+from engine.train.losses import terms as losses
 from engine.train.motion import scene_flow
 
 HELP = "profile a training step per stage: rasterizer, deformation field, fine branch, losses, optimizer"

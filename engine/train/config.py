@@ -271,33 +271,25 @@ def apply_overrides(cfg: TrainConfig, overrides: dict | None) -> TrainConfig:
     return TrainConfig(**groups)
 
 
-def _fast() -> TrainConfig:
-    return TrainConfig()
-
-
-def _balanced() -> TrainConfig:
-    # more steps and Gaussians with fast's motion model (a larger HexPlane collapsed on the demo);
-    # the budget plans at most 1.5x its steps (docs/experiments/spike-guidance.md, "The step cap")
-    return get_preset("fast", {"schedule.iterations": 2500, "schedule.step_cap": 1.5,
-                               "schedule.checkpoint_every_s": 60.0, "gaussians.sh_degree": 1,
-                               "init.max_points": 10000, "densify.max_gaussians": 30000})
-
-
-def _quality() -> TrainConfig:
-    # a budget never runs it past its own steps: at 6000 it overfit both scenes (docs/benchmarks.md)
-    return get_preset("fast", {"schedule.iterations": 3000, "schedule.step_cap": 1.0,
-                               "schedule.checkpoint_every_s": 120.0, "gaussians.sh_degree": 1,
-                               "init.max_points": 12000, "densify.every": 150, "densify.max_gaussians": 40000,
-                               "hexplane.resolution": 32, "hexplane.mlp_width": 96})
-
-
-PRESETS = {"fast": _fast, "balanced": _balanced, "quality": _quality}
+# the presets: what each changes of the defaults (fast). balanced: more steps and Gaussians with fast's
+# motion model (a larger HexPlane collapsed on the demo), the budget planning at most 1.5x its steps;
+# quality: a budget never runs it past its own steps (at 6000 it overfit both scenes).
+# docs/experiments/benchmark-history.md ("Quality preset: what was wrong") and docs/benchmarks.md
+PRESET_CHANGES = {
+    "fast": {},
+    "balanced": {"schedule.iterations": 2500, "schedule.step_cap": 1.5, "schedule.checkpoint_every_s": 60.0,
+                 "gaussians.sh_degree": 1, "init.max_points": 10000, "densify.max_gaussians": 30000},
+    "quality": {"schedule.iterations": 3000, "schedule.step_cap": 1.0, "schedule.checkpoint_every_s": 120.0,
+                "gaussians.sh_degree": 1, "init.max_points": 12000, "densify.every": 150,
+                "densify.max_gaussians": 40000, "hexplane.resolution": 32, "hexplane.mlp_width": 96},
+}
+PRESETS = tuple(PRESET_CHANGES)
 
 
 def get_preset(name: str = "fast", overrides: dict | None = None) -> TrainConfig:
-    if name not in PRESETS:
+    if name not in PRESET_CHANGES:
         raise KeyError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return apply_overrides(PRESETS[name](), overrides)
+    return apply_overrides(apply_overrides(TrainConfig(), PRESET_CHANGES[name]), overrides)
 
 
 def block_weight(cfg: TrainConfig) -> float:
