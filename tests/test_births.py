@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from train_util import trajectory_model
+from train_util import fake_run, trajectory_model
 
 from engine.scene.model import TIME_CENTER, TIME_LOG_SCALE, temporal_opacity
 from engine.train.config import get_preset
@@ -230,11 +230,10 @@ def test_born_gaussians_on_a_static_surface_get_the_static_lifespan(static_life,
     cfg = get_preset("fast").replace(birth_error=0.15, birth_lifespan=0.5,
                                      birth_static_lifespan=static_life, birth_motion="none")
     depth, ok = np.full((H, W), 3.0, np.float32), np.ones((H, W), bool)
-    trainer = SimpleNamespace(
-        cfg=cfg, model=model, seed=0, device="cpu",
-        capture=SimpleNamespace(view=lambda f: View(view0.intrinsics, view0.c2w, time=f.time)),
-        _stereo_priors={id(f): (depth, ok) for f in frames},
-        _item_images={("L", round(t, 9)): torch.from_numpy(images[t])[None] for t in knots})
+    trainer = fake_run(
+        cfg, model=model, capture=SimpleNamespace(view=lambda f: View(view0.intrinsics, view0.c2w, time=f.time)),
+        memo={"stereo_priors": {id(f): (depth, ok) for f in frames},
+              "item_images": {("L", round(t, 9)): torch.from_numpy(images[t])[None] for t in knots}})
     rec = spawn_at_instant(trainer, frames, 0.1)
     g = model.gaussians
     born = rec["born"]
@@ -293,11 +292,10 @@ def test_static_births_in_front_of_the_rendered_surface_are_dropped(guard, monke
                                      birth_static_lifespan=0.0, birth_depth_guard=guard, birth_motion="none")
     depth, ok = np.full((H, W), 4.5, np.float32), np.ones((H, W), bool)
     depth[:, : W // 2] = 3.0
-    trainer = SimpleNamespace(
-        cfg=cfg, model=model, seed=0, device="cpu",
-        capture=SimpleNamespace(view=lambda f: View(view0.intrinsics, view0.c2w, time=f.time)),
-        _stereo_priors={id(f): (depth, ok) for f in frames},
-        _item_images={("L", round(t, 9)): torch.from_numpy(images[t])[None] for t in knots})
+    trainer = fake_run(
+        cfg, model=model, capture=SimpleNamespace(view=lambda f: View(view0.intrinsics, view0.c2w, time=f.time)),
+        memo={"stereo_priors": {id(f): (depth, ok) for f in frames},
+              "item_images": {("L", round(t, 9)): torch.from_numpy(images[t])[None] for t in knots}})
     n0 = g.num_gaussians
     rec = spawn_at_instant(trainer, frames, 0.1)
     everywhere = (H // 2) * (W // 2)                      # the stride-2 grid

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from train_util import fake_run
 
 from engine.scene import fused_adam, lazy_adam, trajectory
 from engine.scene import gaussians as gaussians_mod
@@ -219,7 +220,7 @@ def test_auto_steps_short_curves_whole_as_fused_adam_bit_for_bit(monkeypatch):
 
     class _Ctx:
         def __init__(self, m):
-            self.trainer = type("T", (), {"model": m, "extent": 1.0, "cfg": get_preset("fast")})()
+            self.run = fake_run(model=m)
 
     runs = {}
     for adam in ("exact", "auto"):

@@ -170,7 +170,9 @@ def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
     stream = types.SimpleNamespace(view=lambda t: types.SimpleNamespace(viewmat=np.eye(4)), width=W, height=H,
                                    intrinsics=types.SimpleNamespace(K=K.numpy()))
     monkeypatch.setattr(qc, "REFRESH", refresh)
-    tr = types.SimpleNamespace(cfg=get_preset("fast"))
+    from train_util import fake_run
+
+    tr = fake_run()
     hook = qc.QuietCurves(tr, stream, _change([(0, 0, 0)]), [0.0, 0.1, 0.2])
     m = trajectory_model([0.0, 0.1, 0.2], n=2)
     with torch.no_grad():
@@ -184,16 +186,17 @@ def test_quiet_mask_is_reused_for_the_configured_steps(refresh, monkeypatch):
 
 
 def test_switch_is_a_config_field_and_needs_the_spike_guidance():
-    import types
 
     from engine.train.guidance import quiet_curves as qc
     from engine.train.guidance.quiet_curves import quiet_curves_factory
 
     assert get_preset("fast").spike.quiet_curves and qc.DILATE == 1  # on, one block of dilation
     cfg = get_preset("fast", {"quiet_curves": True})
-    tr = types.SimpleNamespace(cfg=cfg, spike_guidance=None, post_step_hooks=[])
+    from train_util import fake_run
+
+    tr = fake_run(cfg)
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # rgb_only / no spikes: nothing
     tr.cfg = get_preset("fast", {"quiet_curves": True, "motion": "hexplane"})
-    tr.spike_guidance = object()
+    tr.parts["spike_guidance"] = object()
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # curves only
 

@@ -103,7 +103,6 @@ def test_frame_image_is_the_trainers_copy_of_the_file(demo_capture):
     """The carry and the births read a train frame from trainer.items (loaded once per run)
     instead of the disk at each admission: the same numbers; a frame the trainer does not
     hold (e.g. held back by early stopping) still comes from the disk."""
-    from types import SimpleNamespace
 
     from engine.io.capture import load_capture
     from engine.train.loop.scene_setup import train_frames
@@ -113,7 +112,9 @@ def test_frame_image_is_the_trainers_copy_of_the_file(demo_capture):
     held, other = frames[0], frames[1]
     disk = np.asarray(held.load_rgb(), np.float32)[..., :3]
     item = {"camera": held.camera, "time": float(held.time), "image": torch.from_numpy(disk.copy())[None]}
-    tr = SimpleNamespace(items=[item])
+    from train_util import fake_run
+
+    tr = fake_run(items=[item])
     got = scene_flow.frame_image(tr, held)
     assert np.shares_memory(got, item["image"].numpy()) and np.array_equal(got, disk)
     assert np.array_equal(scene_flow.frame_image(tr, other), np.asarray(other.load_rgb(), np.float32)[..., :3])

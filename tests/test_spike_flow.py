@@ -7,7 +7,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from train_util import patch_constants, term_values, trajectory_model
+from train_util import fake_run, patch_constants, term_values, trajectory_model
 
 from engine.scene.model import TRAJ_MEANS
 from engine.train.config import get_preset
@@ -172,7 +172,7 @@ def _bare_supervision(**over) -> SpikeFlowSupervision:
     cfg = get_preset("fast", {"spike_flow_weight": 1.0, **patch_constants(_MP[0], over)})
     view = types.SimpleNamespace(viewmat=np.eye(4), K=K.numpy(), center=np.zeros(3))
     stream = types.SimpleNamespace(t0=0.0, rate_hz=20000.0, width=80, height=60, view=lambda t: view)
-    return SpikeFlowSupervision(types.SimpleNamespace(cfg=cfg, frame_times=KNOTS, device=torch.device("cpu")),
+    return SpikeFlowSupervision(fake_run(cfg, frame_times=KNOTS),
                                 types.SimpleNamespace(stream=stream, sensor=None))
 
 
@@ -240,13 +240,13 @@ def test_switch_off_builds_no_term():
     assert get_preset("fast").spike_flow.weight == 1.0  # on by default
     stream = types.SimpleNamespace(c2w=np.eye(4), intrinsics=object())
     guid = types.SimpleNamespace(renderer=object(), stream=stream)
-    tr = types.SimpleNamespace(cfg=cfg, spike_guidance=guid)
-    assert spike_flow_factory(tr) == [] and not hasattr(tr, "spike_flow")
+    tr = fake_run(cfg, parts={"spike_guidance": guid})
+    assert spike_flow_factory(tr) == [] and tr.part("spike_flow") is None
     tr.cfg = get_preset("fast", {"spike_flow_weight": 1.0, "motion": "hexplane"})
     assert spike_flow_factory(tr) == []  # curves only
     tr.cfg = get_preset("fast", {"spike_flow_weight": 1.0, "spike_loss_weight": 0.0})
     assert spike_flow_factory(tr) == []  # rides on the spike loss's instants
-    tr.spike_guidance = None
+    tr.parts["spike_guidance"] = None
     tr.cfg = get_preset("fast", {"spike_flow_weight": 1.0})
     assert spike_flow_factory(tr) == []  # rgb_only / no spike stream: no guidance
 

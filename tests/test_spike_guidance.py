@@ -6,7 +6,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from train_util import frame_items
+from train_util import fake_run, frame_items
 
 from engine.io.capture import load_capture
 from engine.scene.fine_deformation import SpikeFineEncoder
@@ -39,11 +39,11 @@ class _FakeModel(torch.nn.Module):
 def _fake_trainer(cap, **cfg):
     items = frame_items(cap)
     conf = TrainConfig().replace(**{"block_interp": "linear", "motion": "hexplane", **cfg})  # block loss on
-    return types.SimpleNamespace(capture=cap, cfg=conf, items=items, seed=0, model=_FakeModel(), deform_opt=None)
+    return fake_run(conf, capture=cap, items=items, model=_FakeModel())
 
 
 def _ctx(tr, step=10, stage="deform"):
-    return types.SimpleNamespace(trainer=tr, step=step, stage=stage)
+    return types.SimpleNamespace(run=tr, step=step, stage=stage)
 
 
 @pytest.fixture(scope="module")

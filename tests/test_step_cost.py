@@ -84,13 +84,15 @@ def _stereo_ctx(trainer, h=12, w=16, seed=0):
     mask = torch.rand(h, w, generator=gen) < 0.4
     item = {"stereo_depth": 1.0 + torch.rand(h, w, generator=gen), "stereo_mask": mask}
     depth = (1.0 + torch.rand(1, h, w, 1, generator=gen)).requires_grad_(True)
-    return types.SimpleNamespace(trainer=trainer, item=item, meta={"depths": depth}), depth
+    return types.SimpleNamespace(run=trainer, item=item, meta={"depths": depth}), depth
 
 
 def test_stereo_depth_hoisted_indices_equal_the_boolean_masks(monkeypatch):
     """Loss and depth gradient bit for bit the boolean-mask form's, on the first call (cache
     filled), a second one (cache hit) and another item (its own entry)."""
-    trainer = types.SimpleNamespace()
+    from train_util import fake_run
+
+    trainer = fake_run()
     for ctx, depth in (_stereo_ctx(trainer, seed=0),) * 2 + (_stereo_ctx(trainer, seed=1),):
         out = []
         for hoist in (False, True):
@@ -100,7 +102,7 @@ def test_stereo_depth_hoisted_indices_equal_the_boolean_masks(monkeypatch):
             (val * 3.0).backward()
             out.append((val.detach(), depth.grad.clone()))
         assert torch.equal(_bits(out[0][0]), _bits(out[1][0])) and torch.equal(_bits(out[0][1]), _bits(out[1][1]))
-    assert len(trainer._stereo_pixels) == 2
+    assert len(trainer.memo["stereo_pixels"]) == 2
 
 
 def _textures(seed=0):

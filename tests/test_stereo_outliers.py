@@ -183,7 +183,9 @@ def test_backdrop_gaussians_get_their_opacity_once_at_the_first_step():
     assert len(geometry_post_step_hooks(get_preset("fast", {"init_backdrop": 0.3}))) == 2
     logits = torch.full((10, 1), float(torch.logit(torch.tensor(0.1))))
     g = SimpleNamespace(opacity_logits=torch.nn.Parameter(logits.clone()), num_gaussians=10)
-    tr = SimpleNamespace(init_info={"backdrop": 4, "num_points": 10}, model=SimpleNamespace(gaussians=g))
+    from train_util import fake_run
+
+    tr = fake_run(info={"init": {"backdrop": 4, "num_points": 10}}, model=SimpleNamespace(gaussians=g))
     hooks[0](tr, 5, {}, {})                        # not the first step: nothing
     assert torch.allclose(torch.sigmoid(g.opacity_logits), torch.tensor(0.1))
     hooks[0](tr, 0, {}, {})

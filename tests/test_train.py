@@ -8,6 +8,7 @@ import threading
 import numpy as np
 import pytest
 import torch
+from train_util import fake_run
 
 from engine.evaluate.heldout import evaluate
 from engine.io.capture import load_capture
@@ -270,6 +271,22 @@ def test_seconds_budget_sizes_the_schedule(tiny_capture, tmp_path):
     assert s2["total_steps"] == s["total_steps"]
 
 
+def test_the_budget_probe_leaves_the_run_as_it_was(tiny_capture):
+    """The budget's throw-away steps run on a copy with a context of its own: the run's settings,
+    model, clock and report are untouched (the probe changes its stage fractions and densification)."""
+    import copy
+
+    from engine.train.loop.budget import measure_step_seconds
+
+    tr = trainer_mod.Trainer(load_capture(tiny_capture), get_preset("fast", {"init": "ply"}), device="cpu")
+    tr.init_model()
+    before = (copy.deepcopy(tr.cfg), tr.model, tr.schedule, tr.total_steps, copy.deepcopy(tr.run.info))
+    t_s, t_d = measure_step_seconds(tr, n_static=2, n_deform=2)
+    assert t_s > 0 and t_d > 0
+    assert (tr.cfg, tr.model, tr.schedule, tr.total_steps, tr.run.info) == before
+    assert tr.run.stage_of.__self__ is tr and tr.model.use_deformation is False
+
+
 def test_fine_encoder_hook_trains_and_is_checkpointed(tiny_capture, tmp_path, monkeypatch):
     from torch import nn
 
@@ -336,14 +353,13 @@ def test_time_curriculum_admits_frames_in_order_and_carries_motion_forward(tiny_
 
 
 def test_loss_terms_block_and_stereo_depth():
-    from types import SimpleNamespace
 
     from engine.train.losses.terms import StepContext, _block_l1, _l1, _stereo_depth, default_loss_terms
 
     img = torch.zeros(1, 16, 16, 3)
     img[:, ::2, ::2] = 1.0                      # fine checker, mean 0.25 per 4x4 block
     flat = torch.full((1, 16, 16, 3), 0.25)
-    trainer = SimpleNamespace(cfg=get_preset("fast"))
+    trainer = fake_run()
     depth = torch.full((1, 16, 16, 1), 2.0)
     mask = torch.zeros(16, 16, dtype=torch.bool)
     mask[4:8] = True
@@ -762,7 +778,6 @@ def test_spike_guided_runs_use_their_own_time_smoothness():
     field = types.SimpleNamespace(regularization=lambda tv, smooth, l1: seen.append(smooth) or torch.tensor(0.0))
     cfg = get_preset("fast")
     for guided in (False, True):
-        tr = types.SimpleNamespace(model=types.SimpleNamespace(deformation=field, use_deformation=True), cfg=cfg,
-                                   guided=guided)
-        _deform_reg(types.SimpleNamespace(trainer=tr))
+        tr = fake_run(cfg, model=types.SimpleNamespace(deformation=field, use_deformation=True), guided=guided)
+        _deform_reg(types.SimpleNamespace(run=tr))
     assert seen == [cfg.hexplane.time_smooth_weight, cfg.spike.time_smooth_weight] and seen[0] != seen[1]

@@ -89,3 +89,17 @@ def patch_constants(monkeypatch, over: dict) -> dict:
         else:
             rest[k] = v
     return rest
+
+
+def fake_run(cfg=None, **fields):
+    """A :class:`engine.train.run_context.RunContext` for a part tested without a trainer: the
+    fast preset's settings, no capture, CPU, and any field given."""
+    import torch
+
+    from engine.train.config import get_preset
+    from engine.train.run_context import RunContext
+
+    base = {"capture": None, "device": torch.device("cpu"), "seed": 0, "items": [], "frame_times": [],
+            "time_range": (0.0, 1.0), "fusion_cache": None}
+    base.update(fields)
+    return RunContext(cfg=cfg if cfg is not None else get_preset("fast"), **base)

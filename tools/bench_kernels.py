@@ -139,7 +139,7 @@ def stepcost(args, knots) -> None:
     cap = load_capture(args.capture)
     h, wd = np.asarray(train_frames(cap)[0].load_rgb()).shape[:2]
     depth = (1.0 + torch.rand(1, h, wd, 1, generator=gen)).requires_grad_(True)
-    ctx = types.SimpleNamespace(trainer=types.SimpleNamespace(), meta={"depths": depth},
+    ctx = types.SimpleNamespace(run=types.SimpleNamespace(memo={}), meta={"depths": depth},
                                 item={"stereo_depth": 1.0 + torch.rand(h, wd, generator=gen),
                                       "stereo_mask": torch.rand(h, wd, generator=gen) < 0.6})
 

@@ -228,13 +228,13 @@ def case_trainer(steps, tick, seed=0):
 
     res = CaseResult("trainer")
     t0 = time.perf_counter()
-    state = {"trainer": None}
+    state = {"run": None}
 
-    def grab(trainer):
-        state["trainer"] = trainer
+    def grab(run):
+        state["run"] = run
         return []
 
-    factories = (*LOSS_FACTORIES, grab)  # the run's own loss terms, plus one that grabs the trainer
+    factories = (*LOSS_FACTORIES, grab)  # the run's own loss terms, plus one that grabs its run context
     with tempfile.TemporaryDirectory(prefix="bt4d_stress_") as tmp:
         for scale, n in ((1.0, min(steps, 150)), (1e-3, min(steps, 40))):
             if n < 2:
@@ -242,7 +242,7 @@ def case_trainer(steps, tick, seed=0):
             cap = write_moving_capture(Path(tmp) / f"cap{scale:g}", scale, seed)
 
             def progress(p):
-                tr = state["trainer"]
+                tr = state["run"]
                 named = dict(tr.model.gaussians.params())
                 if tr.model.deformation is not None:
                     named.update({f"field.{k}": v for k, v in tr.model.deformation.named_parameters()})

@@ -90,7 +90,7 @@ class InstantSampler:
                         max_time: float | None = None) -> Instant | None:
         """A between-frame instant (interval from the shuffled rounds unless given).
 
-        ``max_time``: only instants up to this time (the trainer's time curriculum: the
+        ``max_time``: only instants up to this time (the run's time curriculum: the
         window of admitted capture time grows continuously, so in-between instants are
         admitted before the next RGB frame and lead the motion towards it); returns None
         when no covered interval starts before it."""

@@ -173,8 +173,8 @@ def warmup() -> float:
 class QuietCurves:
     """Post-step hook of a run (see the module doc)."""
 
-    def __init__(self, trainer, stream, change, rgb_times):
-        self.cfg = trainer.cfg
+    def __init__(self, run, stream, change, rgb_times):
+        self.cfg = run.cfg
         self.rgb_times = [float(t) for t in rgb_times]  # the change maps' intervals run between these
         view = stream.view(0.0)
         self.viewmat = torch.as_tensor(view.viewmat, dtype=torch.float32)
@@ -246,24 +246,24 @@ class QuietCurves:
             zero_quiet_columns(params, quiet, cols, keeps)
 
 
-def quiet_curves_factory(trainer) -> list:
+def quiet_curves_factory(run) -> list:
     """Registers the :class:`QuietCurves` post-step hook for a (non rgb_only) run with
     ``quiet_curves`` on, per-Gaussian trajectories and a calibrated spike stream whose spike
     guidance exists (its change maps); adds no loss term. Listed after the spike-flow factory
     so the hook runs after the flow fit."""
-    cfg = trainer.cfg
-    guid = getattr(trainer, "spike_guidance", None)
-    hooks = getattr(trainer, "post_step_hooks", None)
+    cfg = run.cfg
+    guid = run.part("spike_guidance")
+    hooks = getattr(run, "post_step_hooks", None)
     if not cfg.spike.quiet_curves or guid is None or hooks is None or "trajectory" not in cfg.motion.representation:
         return []
-    info = spike_stream_info(trainer.capture)
+    info = spike_stream_info(run.capture)
     stream = guid.stream
     if info is None or stream is None or stream.c2w is None or stream.intrinsics is None:
         return []
     cache = guid.window_cache()
     if cache is None:
         return []
-    term = QuietCurves(trainer, stream, cache.change(int(CHANGE_BLOCK)), cache.rgb_times)
-    trainer.quiet_curves = term
+    term = QuietCurves(run, stream, cache.change(int(CHANGE_BLOCK)), cache.rgb_times)
+    run.parts["quiet_curves"] = term
     hooks.append(term)
     return []

@@ -170,29 +170,29 @@ def subset_positions(model: Model4D, t: float, idx: torch.Tensor) -> torch.Tenso
     return base + traj.evaluate(params.detach()[idx], knots, t)
 
 
-# ------------------------------------------------------------------------------ trainer term
+# ------------------------------------------------------------------------------ run term
 class SpikeFlowSupervision(FlowCache):
     """Per-run state of the term: flow cache (engine.train.guidance.spike_flow_cache), the spike camera
     and the RGB instants."""
 
-    def __init__(self, trainer, guidance):
-        self.trainer = trainer
+    def __init__(self, run, guidance):
+        self.run = run
         self.guidance = guidance
-        self.cfg = trainer.cfg
+        self.cfg = run.cfg
         if self.cfg.spike_flow.junctions not in JUNCTION_MODES:
             raise ValueError(f"unknown spike_flow_junctions {self.cfg.spike_flow.junctions!r}; "
                              f"choose one of {', '.join(JUNCTION_MODES)}")
         stream = guidance.stream
         self.stream = stream
         view = stream.view(0.0)
-        dev = trainer.device
+        dev = run.device
         self.view = view
         self.viewmat = torch.as_tensor(view.viewmat, dtype=torch.float32, device=dev)
         self.K = torch.as_tensor(view.K, dtype=torch.float32, device=dev)
         self.vt = {"viewmat": self.viewmat[None], "K": self.K[None], "width": int(stream.width),
                    "height": int(stream.height), "campos": torch.as_tensor(view.center, dtype=torch.float32,
                                                                            device=dev), "time": 0.0}
-        self.times = list(trainer.frame_times)
+        self.times = list(run.frame_times)
         self.init_flows()
         self.last: dict = {}  # diagnostics of the last evaluation
         self.fitted: dict[int, dict] = {}  # interval -> counts of its fit (spike_flow_fit)
@@ -401,7 +401,7 @@ class SpikeFlowSupervision(FlowCache):
         """Post-step hook: the flows of the intervals the next step may admit queued
         (the static stage's steps already run beside the first ones); the interval fits
         asked for during this step."""
-        if tr is self.trainer and callable(getattr(tr, "time_window", None)):  # not the budget's probe copy
+        if tr is self.run and callable(getattr(tr, "time_window", None)):  # not the budget's probe copy
             self.prefetch(tr.time_window(step + 1))
         if not self.cfg.spike_flow.fit:
             return
@@ -414,7 +414,7 @@ class SpikeFlowSupervision(FlowCache):
         if hit is None or hit[1].trajectory is None:
             return None
         b, model = hit
-        tr = ctx.trainer
+        tr = ctx.run
         admitted = admitted_time(ctx, self.times[-1])
         pair = self.instants(float(b["instant"].time), admitted)
         if pair is None:
@@ -445,28 +445,28 @@ class SpikeFlowSupervision(FlowCache):
         return loss
 
 
-def spike_flow_factory(trainer) -> list:
+def spike_flow_factory(run) -> list:
     """The flow term for a (non rgb_only) run with ``spike_flow_weight > 0``, per-Gaussian
     trajectories and a spike loss (whose between-frame instants it uses); nothing otherwise."""
-    cfg = trainer.cfg
-    guid = spike_view_guidance(trainer)
+    cfg = run.cfg
+    guid = spike_view_guidance(run)
     if cfg.spike_flow.weight <= 0 or guid is None:
         return []
     stream = guid.stream
     if ("trajectory" not in cfg.motion.representation or stream is None or stream.c2w is None
             or stream.intrinsics is None):
         return []
-    term = SpikeFlowSupervision(trainer, guid)
-    trainer.spike_flow = term
-    hooks = getattr(trainer, "post_step_hooks", None)
+    term = SpikeFlowSupervision(run, guid)
+    run.parts["spike_flow"] = term
+    hooks = getattr(run, "post_step_hooks", None)
     if hooks is not None:
         hooks.append(term.after_step)
     return [LossTerm("spike_flow", float(cfg.spike_flow.weight), term, stages=("deform",))]
 
 
-def close_flow_worker(trainer) -> None:
-    """Stop the prefetch worker of ``trainer``'s flow term, if it has one (the end of a run, a
+def close_flow_worker(run) -> None:
+    """Stop the prefetch worker of ``run``'s flow term, if it has one (the end of a run, a
     benchmark's run before the next: :meth:`FlowCache.close_flows`)."""
-    term = getattr(trainer, "spike_flow", None)
+    term = run.part("spike_flow")
     if term is not None:
         term.close_flows()

@@ -56,7 +56,7 @@ WORKER_NICE = 19
 
 class FlowCache:
     """The flow half of :class:`engine.train.guidance.spike_flow.SpikeFlowSupervision`: needs ``cfg``,
-    ``stream``, ``guidance.sensor``, ``times`` (the RGB instants) and ``trainer.device``
+    ``stream``, ``guidance.sensor``, ``times`` (the RGB instants) and ``run.device``
     (set by :meth:`init_flows`, called from the term's constructor)."""
 
     def init_flows(self) -> None:
@@ -83,7 +83,7 @@ class FlowCache:
 
     def flow(self, t_ref: float, t: float) -> tuple[torch.Tensor, torch.Tensor]:
         """(flow ref -> t float16 [h, w, 2], valid uint8 [h, w, 1]; sample_map reads both as float32)
-        on the trainer's device (cached). With ``spike_flow_warm`` the flow to a grid instant starts
+        on the run's device (cached). With ``spike_flow_warm`` the flow to a grid instant starts
         from the flow to the grid instant one step closer to ``t_ref`` (spike_flow_pairs). With a
         prefetch worker, computed on its thread (first in its queue) while this one waits."""
         key = (self.frame_of(t_ref), self.frame_of(t))
@@ -104,7 +104,7 @@ class FlowCache:
             fl, ok, back = self.estimate(t_ref, t, init)
             if more:  # only the latest pair of a chain is kept, for the next one
                 self._warm[key] = (fl, back)
-            dev = self.trainer.device
+            dev = self.run.device
             hit = (torch.as_tensor(fl, dtype=FLOW_DTYPE, device=dev),
                    torch.as_tensor(np.asarray(ok) > 0, dtype=torch.uint8, device=dev)[..., None])
             self._flows[key] = hit

@@ -1,4 +1,4 @@
-"""BulletTime4D spike guidance wired into the trainer (paper Eq. 4-23).
+"""BulletTime4D spike guidance wired into the run (paper Eq. 4-23).
 
 * :class:`SpikeFineEncoder` is the deformation field's ``fine_encoder`` hook (Eq. 10):
   ``(xyz_normalised [N, 3], t) -> f_fine [N, feature_dim]`` from the spike window around
@@ -14,9 +14,9 @@
     rate difference is divided by the photometric scale, i.e. measured in linear luminance;
   - the block colour loss (Eq. 20): 4x4 average-pooled render vs the frame interpolated
     (flow or linear) from the camera's RGB frames at T1 and T2.
-  The frame loss at RGB instants (Eq. 22) is the trainer's own L1 + D-SSIM term.
+  The frame loss at RGB instants (Eq. 22) is the run's own L1 + D-SSIM term.
 * :func:`guidance_factory` is listed in :data:`engine.train.loop.trainer.LOSS_FACTORIES`;
-  with ``rgb_only`` the trainer never calls it; without a spike stream it returns nothing
+  with ``rgb_only`` the run never calls it; without a spike stream it returns nothing
   (no flag needed): such captures train exactly as the RGB-only model.
 
 Every option is a :class:`engine.train.config.TrainConfig` field (older run configs get
@@ -64,16 +64,16 @@ def spike_stream_info(capture):
 
 # ----------------------------------------------------------------------------- fine encoder
 
-def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> SpikeFineEncoder | None:
-    """Build the fine encoder for ``field`` from the trainer's capture (None without spikes).
+def make_fine_encoder(run, field, cache: SpikeWindowCache | None = None) -> SpikeFineEncoder | None:
+    """Build the fine encoder for ``field`` from the run's capture (None without spikes).
     ``cache``: reuse already computed spike windows (same stream and RGB times)."""
-    cfg = trainer.cfg
-    info = spike_stream_info(trainer.capture)
+    cfg = run.cfg
+    info = spike_stream_info(run.capture)
     if info is None or not cfg.spike.fine_deformation:
         return None
     stream = info.open()
     cam = info.co_located_with
-    rgb_times = sorted({float(f.time) for f in trainer.capture.frames if f.camera == cam
+    rgb_times = sorted({float(f.time) for f in run.capture.frames if f.camera == cam
                         and not getattr(f, "extra", {}).get("synthetic")})
     if len(rgb_times) < 2:
         return None
@@ -81,7 +81,7 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
                         else np.eye(4)).tolist(),
             "K": (stream.intrinsics.K if stream.intrinsics is not None else np.eye(3)).tolist(),
             "width": int(stream.width), "height": int(stream.height)}
-    spec = {"capture": str(Path(trainer.capture.root).resolve()), "stream_camera": info.camera,
+    spec = {"capture": str(Path(run.capture.root).resolve()), "stream_camera": info.camera,
             "rgb_times": rgb_times, "coverage": [float(stream.t0), float(stream.t_end)],
             "k_sub": int(cfg.spike.fine_k_sub), "d_model": int(cfg.spike.fine_d_model),
             "channels": int(cfg.spike.fine_channels), "per_gaussian": bool(cfg.spike.fine_per_gaussian),
@@ -100,28 +100,28 @@ def make_fine_encoder(trainer, field, cache: SpikeWindowCache | None = None) -> 
 class SpikeGuidance:
     """Per-run state of the between-frame supervision (see module doc)."""
 
-    def __init__(self, trainer):
-        self.trainer = trainer
-        cfg = trainer.cfg
+    def __init__(self, run):
+        self.run = run
+        cfg = run.cfg
         self.cfg = cfg
-        cap = trainer.capture
+        cap = run.capture
         self.real_frames = [f for f in cap.frames if not getattr(f, "extra", {}).get("synthetic")]
         self.by_cam: dict[str, list[int]] = {}
-        for i, it in enumerate(trainer.items):
+        for i, it in enumerate(run.items):
             self.by_cam.setdefault(it["camera"], []).append(i)
         for cam in self.by_cam:
-            self.by_cam[cam].sort(key=lambda i: trainer.items[i]["time"])
+            self.by_cam[cam].sort(key=lambda i: run.items[i]["time"])
         self.info = spike_stream_info(cap)
         self.stream = self.info.open() if self.info is not None else None
         self.colocated = self.info.co_located_with if self.info is not None else None
-        times = sorted({float(it["time"]) for it in trainer.items})
+        times = sorted({float(it["time"]) for it in run.items})
         cov = (self.stream.t0, self.stream.t_end) if self.stream is not None else None
-        self.sampler = InstantSampler(times, p_between=1.0, seed=trainer.seed,
+        self.sampler = InstantSampler(times, p_between=1.0, seed=run.seed,
                                       snap_hz=self.stream.rate_hz if self.stream is not None else None,
                                       snap_t0=self.stream.t0 if self.stream is not None else 0.0)
         self.spike_sampler = None
         if self.stream is not None:
-            self.spike_sampler = InstantSampler(times, p_between=1.0, coverage=cov, seed=trainer.seed + 1,
+            self.spike_sampler = InstantSampler(times, p_between=1.0, coverage=cov, seed=run.seed + 1,
                                                 snap_hz=self.stream.rate_hz, snap_t0=self.stream.t0)
         self.renderer = None
         self.sensor = None
@@ -135,7 +135,7 @@ class SpikeGuidance:
         self._consistency: dict = {}  # occlusion maps of each flow pair (flow_consistency)
         if block_weight(cfg) > 0 and cfg.spike.block_interp == "flow":
             self.precompute_flows()
-        self.rng = np.random.default_rng(trainer.seed + 17)
+        self.rng = np.random.default_rng(run.seed + 17)
         self._window_cache: SpikeWindowCache | None = None
         self.change = None
         self.skipped_intervals = 0
@@ -171,7 +171,7 @@ class SpikeGuidance:
     # --- fine branch -----------------------------------------------------------------------
     def ensure_fine(self, tr) -> None:
         """Attach the fine encoder to ``tr``'s deformation field and optimiser (idempotent;
-        ``tr`` is the trainer of the step, which may be the budget probe's copy)."""
+        ``tr`` is the run of the step, which may be the budget probe's copy)."""
         field = tr.model.deformation if tr.model is not None else None
         if field is None or not tr.model.use_deformation or tr.deform_opt is None:
             return
@@ -225,7 +225,7 @@ class SpikeGuidance:
         return frames.sum(0, dtype=np.float32), frames, b - a
 
     def _real_pairs(self):
-        items = self.trainer.items
+        items = self.run.items
         for cam, idx in self.by_cam.items():
             real = [i for i in idx if not items[i].get("synthetic")]
             for ia, ib in zip(real[:-1], real[1:]):
@@ -233,16 +233,16 @@ class SpikeGuidance:
 
     def precompute_flows(self) -> None:
         """Both-way flows of every consecutive RGB pair of each camera (once per run)."""
-        items = self.trainer.items
+        items = self.run.items
         for ia, ib in self._real_pairs():
             if (ia, ib) not in self._flows:
                 _, self._flows[(ia, ib)] = flow_interpolate(items[ia]["image"][0], items[ib]["image"][0], 0.5,
                                                             return_flows=True)
 
     def bracket(self, cam: str, t: float) -> tuple[int, int, float, float] | None:
-        """(ia, ib, t1, t2): the trainer items of camera ``cam``'s real RGB frames with
+        """(ia, ib, t1, t2): the run items of camera ``cam``'s real RGB frames with
         ``t1 <= t < t2``, or None outside them."""
-        items = self.trainer.items
+        items = self.run.items
         real = [i for i in self.by_cam.get(cam, []) if not items[i].get("synthetic")]
         times = [items[i]["time"] for i in real]
         if len(times) < 2:
@@ -258,7 +258,7 @@ class SpikeGuidance:
         if br is None:
             return None
         ia, ib, t1, t2 = br
-        items = self.trainer.items
+        items = self.run.items
         a, b = items[ia]["image"][0], items[ib]["image"][0]
         eps = (t - t1) / (t2 - t1)
         if self.cfg.spike.block_interp == "linear":
@@ -310,9 +310,9 @@ class SpikeGuidance:
         every = int(self.cfg.spike.between_every)
         if ctx.stage != "deform" or every <= 0 or ctx.step % every != 0:
             return None
-        self.ensure_fine(ctx.trainer)
+        self.ensure_fine(ctx.run)
         use_spike = self.renderer is not None and self.spike_sampler is not None and self.spike_sampler.has_between
-        window = getattr(ctx.trainer, "time_window", None)
+        window = getattr(ctx.run, "time_window", None)
         max_time = window(ctx.step) if callable(window) and self.cfg.spike.between_curriculum else None
         if use_spike and self.colocated in self.by_cam and self.rng.random() < self.cfg.spike.between_colocated_p:
             cam = self.colocated
@@ -325,11 +325,11 @@ class SpikeGuidance:
             inst = self.sampler.between_instant(max_time=max_time)
         if inst is None:  # the time curriculum has not opened any interval yet
             return None
-        item = ctx.trainer.items[self.by_cam[cam][0]]
+        item = ctx.run.items[self.by_cam[cam][0]]
         vt = scaled_view(item, float(self.cfg.spike.between_scale))
         vt["time"] = inst.time
         scale = vt["width"] / item["width"]
-        rgb, alpha, meta, attrs = ctx.trainer.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
+        rgb, alpha, meta, attrs = ctx.run.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
                                                            motion_only=bool(self.cfg.spike.between_motion_only))
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta}
         ctx.__dict__["_between"] = out
@@ -342,10 +342,10 @@ class SpikeGuidance:
         return b if b is not None and b["camera"] == self.colocated else None
 
     def deforming_spike_view(self, ctx) -> tuple[dict, object] | None:
-        """(:meth:`colocated_between`, the trainer's model) when there is such a render and the
+        """(:meth:`colocated_between`, the run's model) when there is such a render and the
         model deforms (the terms that move motion at the spike view need both), else None."""
         b = self.colocated_between(ctx)
-        model = ctx.trainer.model
+        model = ctx.run.model
         if b is None or model is None or not model.use_deformation:
             return None
         return b, model
@@ -390,7 +390,7 @@ def _fine_term(guid: SpikeGuidance):
     """Attaches the fine branch as soon as the deformation stage starts (no loss of its own)."""
     def fn(ctx):
         if ctx.stage == "deform":
-            guid.ensure_fine(ctx.trainer)
+            guid.ensure_fine(ctx.run)
         return None
     return fn
 
@@ -404,35 +404,35 @@ def _tick_fine(tr, step, item, meta) -> None:
 
 
 def admitted_time(ctx, last: float) -> float:
-    """The latest capture time the time curriculum has admitted at ``ctx.step`` (the trainer's
-    ``time_window``), or ``last`` for a trainer without one (the terms that ride on the
+    """The latest capture time the time curriculum has admitted at ``ctx.step`` (the run's
+    ``time_window``), or ``last`` for a run without one (the terms that ride on the
     between-frame renders use only intervals whose ends are both admitted)."""
-    window = getattr(ctx.trainer, "time_window", None)
+    window = getattr(ctx.run, "time_window", None)
     return window(ctx.step) if callable(window) else last
 
 
-def spike_view_guidance(trainer) -> SpikeGuidance | None:
+def spike_view_guidance(run) -> SpikeGuidance | None:
     """The run's spike guidance when its spike loss renders at the spike camera (a renderer
     and ``spike_loss_weight > 0``): what the terms riding on those renders (the along-ray
     prior, the spike-view flow) need; None otherwise."""
-    guid = getattr(trainer, "spike_guidance", None)
-    if guid is None or guid.renderer is None or trainer.cfg.spike.loss_weight <= 0:
+    guid = run.part("spike_guidance")
+    if guid is None or guid.renderer is None or run.cfg.spike.loss_weight <= 0:
         return None
     return guid
 
 
-def guidance_factory(trainer) -> list:
+def guidance_factory(run) -> list:
     """Loss terms of the spike guidance for a (non rgb_only) run."""
-    cfg = trainer.cfg
-    if spike_stream_info(trainer.capture) is None:  # no spike stream: the whole branch is skipped
+    cfg = run.cfg
+    if spike_stream_info(run.capture) is None:  # no spike stream: the whole branch is skipped
         return []
-    guid = SpikeGuidance(trainer)
-    trainer.spike_guidance = guid
-    hooks_after = getattr(trainer, "post_step_hooks", None)
+    guid = SpikeGuidance(run)
+    run.parts["spike_guidance"] = guid
+    hooks_after = getattr(run, "post_step_hooks", None)
     if hooks_after is not None:
         hooks_after.append(_tick_fine)
-    hooks = getattr(trainer, "deformation_hooks", None)
-    if hooks is not None:  # the trainer calls it when the field is created or restored
+    hooks = getattr(run, "deformation_hooks", None)
+    if hooks is not None:  # the run calls it when the field is created or restored
         hooks.append(guid.ensure_fine)
         terms = []
     else:

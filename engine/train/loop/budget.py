@@ -39,7 +39,7 @@ __all__ = ["DEFORM_REESTIMATE_EVERY", "END_RESERVE_S", "REESTIMATE_FRACTION", "m
 
 def measure_step_seconds(trainer, n_static: int = 4, n_deform: int = 4) -> tuple[float, float]:
     """Median seconds per step in each stage, from throw-away steps on a copy of the model."""
-    probe = copy.copy(trainer)
+    probe = trainer.probe_copy()
     probe.model = copy.deepcopy(trainer.model)
     vars(probe.model.gaussians).pop("_replace", None)  # the freezer's watch belongs to the real model
     probe.model.gaussians.setup_optimizer(trainer.cfg.gaussians, trainer.extent)
@@ -69,7 +69,7 @@ def measure_step_seconds(trainer, n_static: int = 4, n_deform: int = 4) -> tuple
 def _probe_times(probe, trainer, n_static: int, n_deform: int) -> dict:
     times = {}
     for stage, n in (("static", n_static), ("deform", n_deform)):
-        probe.cfg = copy.copy(trainer.cfg)
+        probe.cfg = copy.deepcopy(trainer.cfg)  # its groups too: the probe must not change the run's settings
         probe.cfg.schedule.static_fraction = 1.0 if stage == "static" else 0.0
         # the whole capture time admitted: a step at the curriculum's start would skip the
         # spike branch's in-between render (engine.train.guidance.instants), and under-price every later step

@@ -180,7 +180,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             out = trainer.step(step)
             step += 1
             total = trainer.total_steps
-            if early is not None and early.update(trainer, step):
+            if early is not None and early.update(trainer.run, step):
                 stopped_early = early.stopped_at
             now = time.perf_counter()
             if t_first is None:
@@ -242,7 +242,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                         error=f"{exc.__class__.__name__}: {exc}")
         raise
     finally:  # the spike-flow term's prefetch worker: what it has not started is not needed now
-        close_flow_worker(trainer)
+        close_flow_worker(trainer.run)
     train_seconds = prior_seconds + time.perf_counter() - t_start
     snapshot(step, status, train_seconds)
     skips = trainer.skip_summary()

@@ -1,37 +1,22 @@
 """The trainer: one run's data, model and optimisers; :meth:`Trainer.step` is one iteration.
 
-Coarse-stage 4D Gaussian training on the train cameras' RGB frames.
+Two stages (4D Gaussians, Wu et al.; the paper's "coarse DSR + L_frame"): a static warm-up of the
+canonical Gaussians on the first RGB instant, then the deformation stage, which admits the RGB
+instants in time order and moves the Gaussians by per-Gaussian curves and / or the HexPlane field.
+Each step renders one train frame (a per-epoch permutation seeded by ``seed``) and minimises the
+loss terms (:class:`engine.train.losses.terms.LossTerm`) of the frame, the geometry and the loss
+factories in :data:`LOSS_FACTORIES` (the spike guidance; none with ``rgb_only=True``). The parts
+of training see the run through :attr:`Trainer.run` (:class:`engine.train.run_context.RunContext`).
 
-Two stages (4D Gaussians, Wu et al.; paper's "coarse DSR + L_frame"):
-
-1. static warm-up: canonical Gaussians only, trained on every RGB frame;
-2. deformation: a HexPlane deformation field (``engine.scene.deformation``) deforms the
-   canonical Gaussians to each frame's capture time; both are optimised jointly.
-
-Each step renders one random train frame (a per-epoch permutation, seeded by ``seed``) and
-minimises a list of loss terms (:class:`engine.train.losses.terms.LossTerm`): L1 + lambda *
-D-SSIM on the RGB frame plus the deformation regularisers, and the terms of the loss
-factories in :data:`LOSS_FACTORIES` (the spike guidance and its along-ray prior; none with
-``rgb_only=True``).
-
-Every schedule reads one clock, :class:`engine.train.loop.schedule.Schedule` (fractions of
-``engine.train.config``, continuous when a budget run re-plans its total); the loop around
-the trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.loop.run`.
-
-Skipping what a scene does not need (switches of :class:`TrainConfig`, all off by default,
-checkpointed with the run so that cancel + resume equals an uninterrupted run):
-
-* ``freeze_static``: CPOStream freezing (:class:`engine.train.skipping.freezing.TrainFreezer`):
-  Gaussians that stay still for K motion checks skip the deformation field;
-* ``early_stop``: stop (status ``finished``, ``stopped_early`` in the summary and run.json)
-  when the PSNR on train frames held back from training (never the eval frames) stops
-  improving (:class:`engine.train.skipping.early_stop.EarlyStop`);
-* ``cull_frustum``: prune Gaussians outside every train frustum after the first step, at
-  the start of the deformation stage and after each densification
-  (:class:`engine.train.skipping.culling.FrustumCuller`).
+Every schedule reads one clock (:class:`engine.train.loop.schedule.Schedule`); the loop around the
+trainer (resume, budget, checkpoints, run.json) is :mod:`engine.train.loop.run`. The skipping parts
+(``skip.freeze_static``, ``skip.early_stop``, ``skip.cull_frustum``; engine.train.skipping) are
+checkpointed with the run, so cancel + resume equals an uninterrupted run.
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from typing import Callable, Sequence
 
@@ -64,6 +49,7 @@ from ..losses.terms import (
     frame_item_fields,
     renders_at_instants_only,
 )
+from ..run_context import RunContext
 from ..skipping.culling import FrustumCuller
 from ..skipping.early_stop import EarlyStop, hold_back_frames
 from ..skipping.freezing import TrainFreezer
@@ -80,11 +66,43 @@ PRUNE_BIG_WORLD = 0.2  # densification prunes Gaussians whose largest scale exce
 
 
 # ---------------------------------------------------------------------------------- trainer
+def _shared(name: str) -> property:
+    """A trainer attribute that lives in its run context (what the parts of training see)."""
+    return property(lambda self: getattr(self.run, name), lambda self, v: setattr(self.run, name, v),
+                    doc=f"``self.run.{name}`` (engine.train.run_context.RunContext)")
+
+
 class Trainer:
-    """Holds the data, model and optimisers of one run; :meth:`step` does one iteration."""
+    """Holds the data, model and optimisers of one run; :meth:`step` does one iteration.
+
+    The parts of training -- loss factories and terms, hooks, carries, births, skipping -- get
+    :attr:`run` (a :class:`RunContext`), never the trainer itself."""
+
+    cfg = _shared("cfg")
+    capture = _shared("capture")
+    device = _shared("device")
+    seed = _shared("seed")
+    items = _shared("items")
+    frame_times = _shared("frame_times")
+    time_range = _shared("time_range")
+    fusion_cache = _shared("fusion_cache")
+    rgb_only = _shared("rgb_only")
+    schedule = _shared("schedule")
+    model = _shared("model")
+    extent = _shared("extent")
+    deform_opt = _shared("deform_opt")
+    post_step_hooks = _shared("post_step_hooks")
+    deformation_hooks = _shared("deformation_hooks")
+    fine_provider = _shared("fine_provider")
+    guided = _shared("guided")
+    init_info = property(lambda self: self.run.info.setdefault("init", {}),
+                         lambda self, v: self.run.info.__setitem__("init", v), doc="run.json's init record")
+    birth_info = property(lambda self: self.run.info.get("births", []), doc="run.json's births record")
 
     def __init__(self, capture, cfg: TrainConfig, *, device, seed: int = 0, rgb_only: bool = False,
                  total_steps: int | None = None, loss_factories: Sequence[LossFactory] = LOSS_FACTORIES):
+        self.run = RunContext(cfg, capture, None, 0, [], [], (0.0, 0.0), None)
+        self._bind_run()
         self.capture = capture
         self.cfg = cfg
         self.device = torch.device(device)
@@ -131,11 +149,12 @@ class Trainer:
         # field exists (new run or resumed), e.g. to set ``field.fine_encoder`` and call
         # :meth:`add_deformation_parameters`; ``fine_provider(item) -> [N, W] | None`` feeds
         # the Eq. 10 fine feature of each step's render.
-        self.deformation_hooks: list[Callable[["Trainer"], None]] = []
+        self.deformation_hooks: list[Callable[[RunContext], None]] = []
         self.fine_provider: Callable[[dict], torch.Tensor | None] | None = None
+        self.guided = self.between_supervised()
         if not self.rgb_only:
             for factory in loss_factories:
-                self.loss_terms.extend(factory(self) or [])
+                self.loss_terms.extend(factory(self.run) or [])
         self.init_info: dict = {}
         self.extent = 1.0
         self.field_box = None  # (lo[3], hi[3]) of the non-backdrop init points; see init_model
@@ -143,9 +162,37 @@ class Trainer:
         self._carried_to = -math.inf  # latest frame time whose motion was carried forward
         self.carry_info: list[dict] = []  # trajectories carried by scene flow (traj_carry="flow")
         # skipping: owned by the trainer, checkpointed in state()
-        self.freeze: TrainFreezer | None = TrainFreezer.from_config(self, cfg) if cfg.skip.freeze_static else None
-        self.early_stop: EarlyStop | None = EarlyStop.for_trainer(self) if cfg.skip.early_stop else None
+        self.freeze: TrainFreezer | None = TrainFreezer.from_config(self.run, cfg) if cfg.skip.freeze_static else None
+        self.run.parts["freeze"] = self.freeze  # culling keeps the freezer's rows in step
+        self.early_stop: EarlyStop | None = (EarlyStop.for_run(self.run, self.held_back) if cfg.skip.early_stop
+                                            else None)
         self.cull: FrustumCuller | None = FrustumCuller() if cfg.skip.cull_frustum else None
+
+    def _bind_run(self) -> None:
+        """The run context's answers come from this trainer (its stage, its time window)."""
+        self.run.stage_of = self.stage_of
+        self.run.time_window = self.time_window
+        self.run.add_deformation_parameters = self.add_deformation_parameters
+
+    def probe_copy(self) -> "Trainer":
+        """A shallow copy with a run context of its own (the budget's throw-away steps replace its
+        model, optimisers and clock without touching this trainer's)."""
+        probe = copy.copy(self)
+        # its own report (births in a probe step are not the run's); the caches and hooks are shared
+        probe.run = dataclasses.replace(self.run, info=copy.deepcopy(self.run.info))
+        probe._bind_run()
+        return probe
+
+    def part(self, name: str):
+        """The part registered as ``name`` (``run.part``), or None."""
+        return self.run.part(name)
+
+    def __getattr__(self, name: str):
+        # the parts a factory registered (spike_guidance, spike_flow, quiet_curves) read as attributes
+        run = self.__dict__.get("run")
+        if run is not None and name in run.parts:
+            return run.parts[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # ---- schedule: every one reads one clock, continuous under budget re-plans (engine.train.loop.schedule) ----
     total_steps = property(lambda self: self.schedule.total,
@@ -250,14 +297,7 @@ class Trainer:
         self.model.use_deformation = True
         self._make_deform_opt()
         for hook in self.deformation_hooks:
-            hook(self)
-
-    @property
-    def guided(self) -> bool:
-        """:meth:`between_supervised`, computed once per run."""
-        if getattr(self, "_guided", None) is None:
-            self._guided = self.between_supervised()
-        return self._guided
+            hook(self.run)
 
     def between_supervised(self) -> bool:
         """True when the spike guidance supervises instants between the RGB frames."""
@@ -310,10 +350,10 @@ class Trainer:
         frames = train_frames(self.capture)
         if self.cfg.motion.carry == "flow" and li + 1 < len(knots):
             from ..motion.scene_flow import carry_trajectories
-            self.carry_info.append(carry_trajectories(self, frames, knots, li, li + 1))
+            self.carry_info.append(carry_trajectories(self.run, frames, knots, li, li + 1))
         if self.cfg.births.error > 0 and li + 1 < len(knots):
             from ..motion.births import spawn_at_instant
-            spawn_at_instant(self, frames, knots[li + 1])  # records in self.birth_info
+            spawn_at_instant(self.run, frames, knots[li + 1])  # records in run.info["births"]
 
     def add_deformation_parameters(self, params, lr: float, name: str = "extra") -> None:
         """For extensions (e.g. the spike fine encoder): optimise more parameters alongside."""
@@ -357,7 +397,7 @@ class Trainer:
         means2d = meta.get("means2d")
         if means2d is not None and means2d.requires_grad:
             means2d.retain_grad()
-        ctx = StepContext(self, step, stage, item, rgb, alpha, meta, attrs)
+        ctx = StepContext(self.run, step, stage, item, rgb, alpha, meta, attrs)
         total = 0.0
         losses = {}
         for term in self.loss_terms:
@@ -381,7 +421,7 @@ class Trainer:
         if self.deform_opt is not None and stage == "deform":
             self.deform_opt.step()
         for hook in self.post_step_hooks:
-            hook(self, step, item, meta)
+            hook(self.run, step, item, meta)
         if self.freeze is not None and stage == "deform":  # observation module, on this render's rows
             self.freeze.after_step(step, item, rgb, meta)
         info = {}
@@ -393,7 +433,7 @@ class Trainer:
                                        max_gaussians=cfg.densify.max_gaussians,
                                        generator=gen if self.device.type == "cpu" else None)
         if self.cull is not None and (step == 0 or (stage == "deform" and self.stage_of(step - 1) == "static") or info):
-            self.cull(self, step)
+            self.cull(self.run, step)
         if self.freeze is not None and stage == "deform":  # prediction module (periodic motion checks)
             self.freeze.maybe_check(step)
         with torch.no_grad():
@@ -443,7 +483,7 @@ class Trainer:
         if self.model.deformation is not None:
             self._make_deform_opt()
             for hook in self.deformation_hooks:
-                hook(self)
+                hook(self.run)
             if state.get("deform_optimizer") is not None:
                 self.deform_opt.load_state_dict(state["deform_optimizer"])
         skips = state.get("skips") or {}

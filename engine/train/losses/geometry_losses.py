@@ -21,7 +21,7 @@ docs/experiments/two-view-geometry.md):
   (``Model4D.render(grad_rows=...)``), and only their ``cover_grad`` attributes. A floor seen at a grazing angle
   by both train cameras is made of blobs that leave gaps 20 deg above it (docs/experiments/overfit-more-steps.md);
   the photometric loss never sees those gaps.
-Functions take and return tensors with documented shapes; the trainer calls
+Functions take and return tensors with documented shapes; the run calls
 :func:`geometry_loss_terms` (loss list) and :func:`geometry_post_step_hooks`.
 """
 from __future__ import annotations
@@ -67,7 +67,7 @@ def decay_visible_opacity(opacity_logits: torch.Tensor, visible: torch.Tensor, f
     opacity_logits[visible] = torch.logit(o.clamp(1e-6, 1 - 1e-6))
 
 
-# ---------------------------------------------------------------------------------- trainer glue
+# ---------------------------------------------------------------------------------- run glue
 def orbit_view(vt: dict, pivot_depth: float, axis_angle: float, angle_rad: float, scale: float = 1.0) -> dict:
     """A view dict (``view_tensors`` keys; viewmat world->camera [1,4,4], OpenCV axes) whose
     camera is turned by ``angle_rad`` about the point ``pivot_depth`` ahead on its optical
@@ -169,14 +169,14 @@ def _cover(ctx, grad_attrs: tuple | None = None):
     if hit.numel() < 16:
         return None
     pivot = float(hit.median())
-    rng = np.random.default_rng([int(getattr(ctx.trainer, "seed", 0)), int(ctx.step), 11])
+    rng = np.random.default_rng([int(getattr(ctx.run, "seed", 0)), int(ctx.step), 11])
     angle = math.radians(float(COVER_ANGLE_DEG)) * float(rng.uniform(0.5, 1.0))
     vt = orbit_view(ctx.item, pivot, float(rng.uniform(0, 2 * math.pi)), angle, float(COVER_SCALE))
     # only the Gaussians the step's own view draws may change for it: one outside every train
     # frustum is held by no photometric loss, and grown by this term alone it became fog
     radii = ctx.meta.get("radii")  # [C, N] on every backend (engine.raster)
     drawn = None if radii is None else radii[0] > 0
-    _, alpha, _, _ = ctx.trainer.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn,
+    _, alpha, _, _ = ctx.run.model.render(vt, float(ctx.item["time"]), render_depth=False, grad_rows=drawn,
                                               grad_attrs=grad_attrs)
     kernel = cover_kernel_px(float(COVER_KERNEL_FRAC), int(vt["height"]), int(vt["width"]))
     return cover_loss(alpha[0, ..., 0], kernel,
@@ -201,8 +201,8 @@ def cover_grad_attrs(text: str) -> tuple | None:
 
 
 def geometry_loss_terms(cfg, LossTerm) -> list:
-    """The enabled geometry terms as ``LossTerm`` (the trainer's class, passed in to keep
-    this module free of the trainer)."""
+    """The enabled geometry terms as ``LossTerm`` (the run's class, passed in to keep
+    this module free of the run)."""
     terms = []
     if cfg.losses.cover > 0:
         # parsed once per run; a wrong name fails here, before the first step
@@ -212,11 +212,11 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
 
 
 def _opacity_decay_hook(factor: float, start_fraction: float = 0.0, end_fraction: float = 1.0):
-    def hook(trainer, step: int, item: dict, meta: dict) -> None:
-        if not trainer.schedule.in_fraction_window(step, start_fraction, end_fraction):
+    def hook(run, step: int, item: dict, meta: dict) -> None:
+        if not run.schedule.in_fraction_window(step, start_fraction, end_fraction):
             return
         radii = meta.get("radii")
-        g = trainer.model.gaussians
+        g = run.model.gaussians
         if radii is None or radii.shape[1] != g.num_gaussians:
             return
         decay_visible_opacity(g.opacity_logits.data, radii[0] > 0, factor)
@@ -235,16 +235,16 @@ def _backdrop_opacity_hook(opacity: float):
     ``init.backdrop``) lie beyond every train camera's image, so no step trains their opacity;
     at ``init_opacity`` (0.1) a viewer 20-30 deg off sees through them (alpha < 0.5). Set once,
     after the first step (before any densification reorders the Gaussians)."""
-    def hook(trainer, step: int, item: dict, meta: dict) -> None:
-        info = getattr(trainer, "init_info", {}) or {}
-        g = trainer.model.gaussians
+    def hook(run, step: int, item: dict, meta: dict) -> None:
+        info = run.info.get("init") or {}
+        g = run.model.gaussians
         if step == 0 and info.get("backdrop") and g.num_gaussians == info.get("num_points"):
             set_tail_opacity(g.opacity_logits.data, int(info["backdrop"]), opacity)
     return hook
 
 
 def geometry_post_step_hooks(cfg) -> list:
-    """Hooks ``(trainer, step, item, meta)`` run after each optimiser step."""
+    """Hooks ``(run, step, item, meta)`` run after each optimiser step."""
     hooks = []
     if cfg.init.backdrop > 0 and BACKDROP_OPACITY > 0:
         hooks.append(_backdrop_opacity_hook(BACKDROP_OPACITY))

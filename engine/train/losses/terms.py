@@ -25,7 +25,7 @@ __all__ = ["LossTerm", "StepContext", "default_loss_terms", "frame_item_fields",
 BLOCK_SIZE = 4  # side of the block loss's average pooling (paper Eq. 20: 4x4)
 
 def frame_item_fields(frame, cfg: TrainConfig, device) -> dict:
-    """The trainer item's fields that say how a train frame is supervised: ``synthetic``
+    """The run item's fields that say how a train frame is supervised: ``synthetic``
     (a baseline's generated frame, engine.train.frames.baselines), ``knot`` (its instant is an RGB
     instant: trajectory knot, scene-flow carry, spike intervals; the frame's ``knot``, from
     ``cfg.baseline.instants``), and for synthetic frames ``loss_scale``
@@ -62,7 +62,7 @@ class LossTerm:
 
 @dataclass
 class StepContext:
-    trainer: Any          # the engine.train.loop.trainer.Trainer running the step
+    run: Any          # the RunContext of the run (engine.train.run_context)
     step: int
     stage: str
     item: dict            # the train frame: view tensors + "image" [1,H,W,3] + "index"
@@ -121,7 +121,7 @@ def _stereo_depth(ctx: StepContext):
     # the item's mask and target are fixed for the run: their confident pixels' flat indices and
     # target values once per (mask, target), then one index_select a step instead of two boolean
     # gathers (each a nonzero over the image); same values, and the same gradient (0 + g per pixel)
-    cache = ctx.trainer.__dict__.setdefault("_stereo_pixels", {})
+    cache = ctx.run.memo.setdefault("stereo_pixels", {})
     hit = cache.get(id(m))
     if hit is None or hit[0] is not m or hit[1] is not target:
         flat = m.reshape(-1).nonzero(as_tuple=True)[0]
@@ -136,11 +136,11 @@ HOIST_STEREO = True
 
 
 def _deform_reg(ctx: StepContext):
-    d = ctx.trainer.model.deformation
-    cfg = ctx.trainer.cfg
-    if d is None or not ctx.trainer.model.use_deformation:
+    d = ctx.run.model.deformation
+    cfg = ctx.run.cfg
+    if d is None or not ctx.run.model.use_deformation:
         return None
-    smooth = cfg.spike.time_smooth_weight if ctx.trainer.guided else cfg.hexplane.time_smooth_weight
+    smooth = cfg.spike.time_smooth_weight if ctx.run.guided else cfg.hexplane.time_smooth_weight
     return d.regularization(TV_WEIGHT, smooth, TIME_L1_WEIGHT)
 
 
@@ -148,18 +148,18 @@ def _traj_reg(ctx: StepContext):
     """Mean squared inner-point residual of the trajectories / extent^2 (engine.scene.trajectory):
     with zero residuals the in-between motion is the Catmull-Rom curve through the RGB
     instants; only the between-frame losses have a reason to bend it."""
-    m = ctx.trainer.model
+    m = ctx.run.model
     if m.trajectory is None or not m.use_deformation:
         return None
     opt, curve = m.gaussians.optimizer, getattr(m.gaussians, TRAJ_MEANS)
     if getattr(opt, "lazy_for", None) is not None and opt.lazy_for(curve):
         # a lazy optimiser adds the prior's gradient on the columns it updates (engine.scene.lazy_adam)
-        opt.inner_decay[TRAJ_MEANS] = float(ctx.trainer.cfg.motion.inner_weight) / ctx.trainer.extent ** 2
+        opt.inner_decay[TRAJ_MEANS] = float(ctx.run.cfg.motion.inner_weight) / ctx.run.extent ** 2
         return None
     sq = inner_residual_sq(curve)
     if sq.numel() == 0:
         return None
-    return sq.mean() / ctx.trainer.extent ** 2
+    return sq.mean() / ctx.run.extent ** 2
 
 
 MOTIONS = ("hexplane", "trajectory", "trajectory+hexplane")

@@ -114,18 +114,18 @@ def stereo_in_front(stereo: np.ndarray, render_depth: np.ndarray, render_alpha: 
     return (render_alpha >= 0.5) & (stereo < ratio * render_depth)
 
 
-def spawn_at_instant(trainer, frames, t: float) -> dict:
+def spawn_at_instant(run, frames, t: float) -> dict:
     """Births at the train frames of instant ``t`` (see the module docstring). Returns the
-    record ``{"birth_at", "born", "total"}``, also appended to ``trainer.birth_info`` (run.json's
+    record ``{"birth_at", "born", "total"}``, also appended to ``run.info["births"]`` (run.json's
     ``births``)."""
-    cfg, model = trainer.cfg, trainer.model
+    cfg, model = run.cfg, run.model
     if cfg.births.motion not in BIRTH_MOTIONS:  # before the model changes
         raise ValueError(f"unknown birth_motion {cfg.births.motion!r}; choose one of {', '.join(BIRTH_MOTIONS)}")
     g = model.gaussians
-    pri = instant_depth_priors(trainer, frames)
+    pri = instant_depth_priors(run, frames)
     knots = model.trajectory["knots"]  # births follow the carry, which only curves have
     dt = float(np.median(np.diff(knots))) if len(knots) > 1 else 1.0 / 30.0
-    rng = np.random.default_rng(int(trainer.seed) * 7919 + int(round(t * 1e6)))
+    rng = np.random.default_rng(int(run.seed) * 7919 + int(round(t * 1e6)))
     static_life = float(cfg.births.static_lifespan)
     guard = float(cfg.births.depth_guard)
     find_static = static_life > 0 or guard > 0
@@ -135,16 +135,16 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     for f in frames:
         if abs(float(f.time) - t) > 1e-6 or id(f) not in pri:
             continue
-        view = trainer.capture.view(f)
-        vt = view_tensors(view, trainer.device)
+        view = run.capture.view(f)
+        vt = view_tensors(view, run.device)
         with torch.no_grad():
             rgb, alpha, meta, _ = model.render(vt, t, render_depth=guard > 0)
         rgb = rgb[0].clamp(0, 1).cpu().numpy()
-        img = frame_image(trainer, f)
+        img = frame_image(run, f)
         depth, ok = pri[id(f)]
         r, c = birth_candidates(rgb, img, depth, ok, cfg.births.error, int(STRIDE), int(MAX_PER_FRAME), rng)
         if find_static and len(r):
-            nbrs = [frame_image(trainer, by_key[k]) for k in
+            nbrs = [frame_image(run, by_key[k]) for k in
                     ((f.camera, round(float(knots[i]), 9)) for i in (j - 1, j + 1) if 0 <= i < len(knots))
                     if k in by_key]
             unchanged = unchanged_pixels(img, nbrs, r, c, cfg.births.error)
@@ -160,7 +160,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
         pts.append(backproject_pixels(view, np.stack([c + 0.5, r + 0.5], 1), z))
         cols.append(img[r, c])
         sizes.append(z / view.intrinsics.fx * STRIDE * 0.5)  # half the grid step, in metres
-    records = trainer.__dict__.setdefault("birth_info", [])
+    records = run.info.setdefault("births", [])
     if not pts:
         records.append({"birth_at": float(t), "born": 0, "total": g.num_gaussians})
         if guard > 0:
@@ -196,7 +196,7 @@ def spawn_at_instant(trainer, frames, t: float) -> dict:
     if guard > 0:
         records[-1]["guarded"] = guarded
     if cfg.births.motion != "none":
-        records[-1].update(move_born(trainer, frames, knots, t, g.num_gaussians - m))
+        records[-1].update(move_born(run, frames, knots, t, g.num_gaussians - m))
     return records[-1]
 
 
@@ -272,17 +272,17 @@ def _born_mask(view, points: np.ndarray, shape, grow: int) -> np.ndarray:
     return cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)).astype(bool)
 
 
-def move_born(trainer, frames, knots, t: float, first: int) -> dict:
+def move_born(run, frames, knots, t: float, first: int) -> dict:
     """Write the junctions before and after ``t`` of the Gaussians born at ``t`` (rows
     ``first:``) from :func:`backward_displacement` towards ``T_{j-1}`` (held before it) and
     ``T_{j+1}`` (held after it; the carry leaves short-lived Gaussians alone when
     ``birth_motion`` is on) (``birth_motion``, module docstring). Returns counts for run.json's
     ``births`` record."""
     j = int(np.argmin([abs(k - t) for k in knots]))
-    cfg, model = trainer.cfg, trainer.model
+    cfg, model = run.cfg, run.model
     g = model.gaussians
     tm = getattr(g, TRAJ_MEANS).data
-    pri = instant_depth_priors(trainer, frames) if cfg.births.motion != "nearest" else {}
+    pri = instant_depth_priors(run, frames) if cfg.births.motion != "nearest" else {}
     by_cam: dict = {}
     for f in frames:
         by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
@@ -301,7 +301,7 @@ def move_born(trainer, frames, knots, t: float, first: int) -> dict:
             fa, fb = at.get(round(knots[j], 9)), at.get(round(knots[i], 9))
             if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
                 continue
-            img_a, img_b, view = frame_image(trainer, fa), frame_image(trainer, fb), trainer.capture.view(fa)
+            img_a, img_b, view = frame_image(run, fa), frame_image(run, fb), run.capture.view(fa)
             if cfg.births.motion == "match":
                 mask = _born_mask(view, at_j[first:], img_a.shape[:2], int(STRIDE))
                 flow = component_flow(img_a, img_b, mask, int(round(MATCH_RADIUS * img_a.shape[1])))
@@ -309,7 +309,7 @@ def move_born(trainer, frames, knots, t: float, first: int) -> dict:
                 flow = image_flow(img_a, img_b, cfg.births.motion)
             cams.append((view, flow, *pri[id(fa)], *pri[id(fb)]))
         delta, decided, n_flow = backward_displacement(
-            at_j[first:], cams, at_j[alive], (at_i - at_j)[alive], scene_flow.CARRY_HIDDEN * trainer.extent)
+            at_j[first:], cams, at_j[alive], (at_i - at_j)[alive], scene_flow.CARRY_HIDDEN * run.extent)
         idx = torch.from_numpy(first + np.nonzero(decided)[0]).to(tm.device)
         d = torch.from_numpy(delta[decided]).to(tm)
         for k in (range(i + 1) if i < j else range(i, len(knots))):

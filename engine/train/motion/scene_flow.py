@@ -232,13 +232,14 @@ def propagate_to_hidden_dense(positions: np.ndarray, delta: np.ndarray, decided:
     return out, taken
 
 
-def instant_depth_priors(trainer, frames) -> dict:
+def instant_depth_priors(run, frames) -> dict:
     """The per-instant stereo depth of the train ``frames`` ({id(frame): (depth, ok)},
-    :func:`stereo_depth_priors`), computed once per trainer and shared by the carry and the
+    :func:`stereo_depth_priors`), computed once per run and shared by the carry and the
     births (engine.train.motion.births)."""
-    if getattr(trainer, "_stereo_priors", None) is None:
-        trainer._stereo_priors = stereo_depth_priors(trainer.capture, frames, fusion_cache=trainer.fusion_cache)
-    return trainer._stereo_priors
+    memo = run.memo
+    if memo.get("stereo_priors") is None:
+        memo["stereo_priors"] = stereo_depth_priors(run.capture, frames, fusion_cache=run.fusion_cache)
+    return memo["stereo_priors"]
 
 
 # False: the carry and the births read the frames from disk at each admission (bench-step's
@@ -246,31 +247,31 @@ def instant_depth_priors(trainer, frames) -> dict:
 ITEM_IMAGES = True
 
 
-def frame_image(trainer, frame) -> np.ndarray:
-    """The RGB image [H, W, 3] float32 of a train ``frame``: the copy the trainer holds
-    (``trainer.items``, loaded once per run) when it trains on that frame, else read from
+def frame_image(run, frame) -> np.ndarray:
+    """The RGB image [H, W, 3] float32 of a train ``frame``: the copy the run holds
+    (``run.items``, loaded once per run) when it trains on that frame, else read from
     disk (e.g. a frame early stopping holds back) -- the same numbers either way."""
     if not ITEM_IMAGES:
         return np.asarray(frame.load_rgb(), np.float32)[..., :3]
-    cache = getattr(trainer, "_item_images", None)
+    cache = run.memo.get("item_images")
     if cache is None:
-        cache = trainer._item_images = {(it["camera"], round(float(it["time"]), 9)): it["image"]
-                                         for it in getattr(trainer, "items", ())}
+        cache = run.memo["item_images"] = {(it["camera"], round(float(it["time"]), 9)): it["image"]
+                                           for it in run.items}
     img = cache.get((frame.camera, round(float(frame.time), 9)))
     if img is not None and img.device.type == "cpu":
         return img[0].numpy()
     return np.asarray(frame.load_rgb(), np.float32)[..., :3]
 
 
-def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
+def carry_trajectories(run, frames, knots, i: int, j: int) -> dict:
     """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i`` in
     a train camera along that camera's optical flow, lifted by the stereo depth at
     ``knots[j]`` (``frames``: the train RGB frames); hidden Gaussians follow their nearest decided neighbour
     (``traj_carry_hidden`` x extent); later knots hold the result. Returns counts (run.json)."""
-    pri = instant_depth_priors(trainer, frames)
-    g = trainer.model.gaussians
+    pri = instant_depth_priors(run, frames)
+    g = run.model.gaussians
     with torch.no_grad():
-        pos_i = trainer.model.attributes(knots[i])["means"].detach().cpu().numpy()
+        pos_i = run.model.attributes(knots[i])["means"].detach().cpu().numpy()
     todo = np.ones(len(pos_i), dtype=bool)
     still = np.zeros(len(pos_i), dtype=bool)
     delta = np.zeros_like(pos_i)
@@ -282,8 +283,8 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
         fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
         if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
             continue
-        img_a, img_b = frame_image(trainer, fa), frame_image(trainer, fb)
-        new, ok, st = carry_by_flow(pos_i, trainer.capture.view(fa), image_flow(img_a, img_b, method), *pri[id(fa)],
+        img_a, img_b = frame_image(run, fa), frame_image(run, fb)
+        new, ok, st = carry_by_flow(pos_i, run.capture.view(fa), image_flow(img_a, img_b, method), *pri[id(fa)],
                                     *pri[id(fb)], return_still=True)
         ok &= todo
         delta[ok] = new[ok] - pos_i[ok]
@@ -291,10 +292,10 @@ def carry_trajectories(trainer, frames, knots, i: int, j: int) -> dict:
         still |= st
     n_flow = int((~todo).sum())
     if CARRY_HIDDEN > 0:
-        delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, CARRY_HIDDEN * trainer.extent)
+        delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, CARRY_HIDDEN * run.extent)
         todo &= ~(taken & (np.abs(delta).sum(1) > 0))
     carried = ~todo
-    if trainer.cfg.births.motion != "none":  # births.move_born moved those
+    if run.cfg.births.motion != "none":  # births.move_born moved those
         carried &= ~born_mask(g).cpu().numpy()
     if carried.any():
         tm = getattr(g, TRAJ_MEANS).data

@@ -10,24 +10,24 @@ from ...raster.projection import project_gaussians
 __all__ = ["FrustumCuller", "frustum_cull_mask"]
 
 
-def frustum_cull_mask(trainer, margin_px: float = 0.0, times=None) -> torch.Tensor:
+def frustum_cull_mask(run, margin_px: float = 0.0, times=None) -> torch.Tensor:
     """bool [N]: Gaussians invisible (radius 0: behind, beyond the image box, or below 1/255
     opacity) in every train view, at the canonical positions and -- once the deformation
     field exists -- at ``times`` (default: the train frame times) as well."""
-    model = trainer.model
+    model = run.model
     g = model.gaussians
     views = {}
-    for it in trainer.items:
+    for it in run.items:
         key = tuple(np.round(it["viewmat"][0].cpu().numpy().ravel(), 6)) + (it["width"], it["height"])
         views.setdefault(key, it)
     with torch.no_grad():
         positions = [g.means.detach()]
         if model.deformation is not None and model.use_deformation:
-            for t in (times if times is not None else trainer.frame_times):
+            for t in (times if times is not None else run.frame_times):
                 d = model.deformation(g.means, g.quats, g.log_scales, g.opacity_logits, float(t))
                 positions.append(d["means"].detach())
         if model.trajectory is not None and model.use_deformation:  # per-Gaussian curves (issue 11)
-            for t in (times if times is not None else trainer.frame_times):
+            for t in (times if times is not None else run.frame_times):
                 positions.append(model.attributes(float(t))["means"].detach())
         visible = torch.zeros(g.num_gaussians, dtype=torch.bool, device=g.means.device)
         scales = torch.exp(g.log_scales.detach())
@@ -44,7 +44,7 @@ def frustum_cull_mask(trainer, margin_px: float = 0.0, times=None) -> torch.Tens
 
 
 class FrustumCuller:
-    """Prune Gaussians outside every train frustum (:func:`frustum_cull_mask`). The trainer
+    """Prune Gaussians outside every train frustum (:func:`frustum_cull_mask`). The run
     calls it after the first step, after the first deformation step and right after each
     densification (whose statistics were just reset, so pruning then does not disturb them);
     never below ``min_keep`` Gaussians."""
@@ -56,15 +56,15 @@ class FrustumCuller:
         self.pruned = 0
         self.events: list[dict] = []
 
-    def __call__(self, trainer, step: int) -> int:
-        g = trainer.model.gaussians
-        mask = frustum_cull_mask(trainer)
+    def __call__(self, run, step: int) -> int:
+        g = run.model.gaussians
+        mask = frustum_cull_mask(run)
         n = int(mask.sum())
         if not n or g.num_gaussians - n < self.min_keep:
             return 0
         g.prune(mask)
-        if trainer.freeze is None:
-            trainer.model.static_mask = None
+        if run.part("freeze") is None:
+            run.model.static_mask = None
         self.pruned += n
         self.events.append({"step": int(step), "pruned": n, "left": g.num_gaussians})
         del self.events[:-self.EVENTS_KEEP]

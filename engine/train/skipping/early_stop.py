@@ -51,7 +51,7 @@ def hold_back_frames(frames: list, n: int | None = None) -> tuple[list, list]:
 class EarlyStop:
     """Stop when the PSNR on a few held-back train frames (the *proxy*) stops improving.
 
-    The proxy is ``PROXY_FRAMES`` train frames that the trainer holds back from
+    The proxy is ``PROXY_FRAMES`` train frames that the run holds back from
     training (:func:`hold_back_frames`: one camera's frame at instants that another train
     camera also sees), never the capture's eval frames, which are the test views every
     reported metric is computed on (``source == "held_back_train"``, named in run.json's
@@ -82,14 +82,14 @@ class EarlyStop:
         self._bad = 0
 
     @classmethod
-    def for_trainer(cls, trainer) -> "EarlyStop | None":
-        """The proxy of ``trainer.held_back`` (None when nothing could be held back)."""
-        cfg, cap = trainer.cfg, trainer.capture
+    def for_run(cls, run, held_back: list) -> "EarlyStop | None":
+        """The proxy of the train frames ``held_back`` from ``run`` (None when nothing could be held back)."""
+        cfg, cap = run.cfg, run.capture
         frames, names = [], []
-        for f in trainer.held_back:
-            vt = view_tensors(cap.view(f), trainer.device)
+        for f in held_back:
+            vt = view_tensors(cap.view(f), run.device)
             img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
-            vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(trainer.device)[None]
+            vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(run.device)[None]
             frames.append(vt)
             names.append(f"train:{f.camera}@{float(f.time):.6f}")
         if not frames:
@@ -111,20 +111,20 @@ class EarlyStop:
         model.train(was)
         return float(np.mean(ps)) if ps else float("nan")
 
-    def update(self, trainer, done: int) -> bool:
+    def update(self, run, done: int) -> bool:
         """After ``done`` completed steps: evaluate when due; True when training should stop."""
         if self.stopped_at is not None:
             return True
         if done < self._next:
             return False
-        total = trainer.total_steps
+        total = run.total_steps
         self._next = done + self.every(total)
-        deform_done = trainer.schedule.deform_progress(done, trainer.cfg.schedule.static_fraction)
+        deform_done = run.schedule.deform_progress(done, run.cfg.schedule.static_fraction)
         t0 = time.perf_counter()
-        score = self.score(trainer.model)
+        score = self.score(run.model)
         self.eval_seconds += time.perf_counter() - t0
         self.history.append({"step": done, "proxy_psnr": round(score, 4)})
-        if trainer.stage_of(done - 1) != "deform" or deform_done < self.min_deform_fraction:
+        if run.stage_of(done - 1) != "deform" or deform_done < self.min_deform_fraction:
             self._best = max(self._best, score)
             return False
         if score > self._best + self.min_delta:

@@ -8,7 +8,7 @@ Here the same two modules decide which Gaussians skip the 4D deformation field:
 
 * a frozen Gaussian is rendered with its canonical attributes at every instant -- it costs
   nothing in the deformation field and cannot flicker (its render is time-invariant);
-* :class:`Freezer` holds the state; it knows nothing about the trainer. ``update(motion)``
+* :class:`Freezer` holds the state; it knows nothing about the run. ``update(motion)``
   takes per-Gaussian motion measured at a periodic check (deltas [N,3] or magnitudes [N]),
   ``wake(mask)`` / ``observe(scores)`` un-freeze, ``resize_on_densify`` follows clone /
   split / prune, ``state_dict`` / ``load_state_dict`` checkpoint it;
@@ -19,7 +19,7 @@ Here the same two modules decide which Gaussians skip the 4D deformation field:
   last K checks" mask;
 * the flicker that freezing removes is measured by :mod:`engine.evaluate.flicker`.
 
-:class:`TrainFreezer` is the trainer's side (``TrainConfig.freeze_static``): it runs the
+:class:`TrainFreezer` is the run's side (``TrainConfig.freeze_static``): it runs the
 periodic checks in the deformation stage, sets ``Model4D.static_mask`` and is checkpointed
 with the run.
 """
@@ -308,7 +308,7 @@ def abrupt_mask(current: torch.Tensor, history: list, threshold: float) -> torch
     return now
 
 
-# ----------------------------------------------------------------------------- trainer side
+# ----------------------------------------------------------------------------- run side
 
 # the observation module wakes a frozen Gaussian under a larger residual; the motion checks are spread
 # over the deformation stage, the first after START_FRACTION of it
@@ -318,9 +318,9 @@ START_FRACTION = 0.3
 
 class TrainFreezer:
     """The freezing switch of :mod:`engine.train.loop.trainer` (``TrainConfig.freeze_static``): a
-    :class:`Freezer` run by the trainer it belongs to, in the deformation stage.
+    :class:`Freezer` run by the run it belongs to, in the deformation stage.
 
-    The trainer calls :meth:`after_step` after each optimiser step (before densification)
+    The run calls :meth:`after_step` after each optimiser step (before densification)
     and :meth:`maybe_check` after it. Together they:
 
     * every ``check_every`` steps (default: ``checks_per_stage`` checks over the deformation
@@ -334,19 +334,19 @@ class TrainFreezer:
       parameters (:func:`bake_static`), so freezing does not make them jump;
     * keep ``Model4D.static_mask`` equal to the frozen mask (frozen Gaussians skip the
       deformation field: ``DeformationField.forward(mask=...)``);
-    * follow densification and pruning (:meth:`follow`: keep mask + new rows; the trainer
+    * follow densification and pruning (:meth:`follow`: keep mask + new rows; the run
       routes the Gaussians' ``_replace`` through it).
 
-    :meth:`state_dict` / :meth:`load_state_dict` go into the trainer's checkpoint, so a
+    :meth:`state_dict` / :meth:`load_state_dict` go into the run's checkpoint, so a
     resumed run freezes exactly as an uninterrupted one. Statistics are in :attr:`log`.
     """
 
     LOG_KEEP = 50
 
-    def __init__(self, trainer, *, k_checks: int = 3, motion_eps_px: float = 0.3, wake_residual: float = 0.15,
+    def __init__(self, run, *, k_checks: int = 3, motion_eps_px: float = 0.3, wake_residual: float = 0.15,
                  check_every: int | None = None, checks_per_stage: int = 20, start_fraction: float = 0.3,
                  max_times: int = 8, observe: bool = True, bake: bool = True):
-        self.trainer = trainer
+        self.run = run
         self.k_checks = int(k_checks)
         self.motion_eps_px = float(motion_eps_px)
         self.wake_residual = float(wake_residual)
@@ -363,20 +363,20 @@ class TrainFreezer:
         self.woken = 0
 
     @classmethod
-    def from_config(cls, trainer, cfg) -> "TrainFreezer":
-        return cls(trainer, k_checks=cfg.skip.freeze_k_checks, motion_eps_px=cfg.skip.freeze_motion_eps_px,
+    def from_config(cls, run, cfg) -> "TrainFreezer":
+        return cls(run, k_checks=cfg.skip.freeze_k_checks, motion_eps_px=cfg.skip.freeze_motion_eps_px,
                    wake_residual=WAKE_RESIDUAL, checks_per_stage=CHECKS_PER_STAGE, start_fraction=START_FRACTION)
 
     # -------------------------------------------------------------- bookkeeping
     def _active(self) -> bool:
-        m = self.trainer.model
+        m = self.run.model
         # not with per-Gaussian trajectories (issue 11): freezing bakes the field's motion
         # only, a frozen Gaussian would lose its trajectory offset
         return (m is not None and m.deformation is not None and m.use_deformation
                 and getattr(m, "trajectory", None) is None)
 
     def _ensure(self) -> Freezer:
-        g = self.trainer.model.gaussians
+        g = self.run.model.gaussians
         if self.freezer is None or self.freezer.num_gaussians != g.num_gaussians:
             self.freezer = Freezer(g.num_gaussians, self.k_checks, self.motion_eps_px, self.wake_residual,
                                    device=g.means.device)
@@ -396,22 +396,22 @@ class TrainFreezer:
         self.sync_mask()
 
     def sync_mask(self) -> None:
-        model = self.trainer.model
+        model = self.run.model
         if self.freezer is None or self.freezer.num_frozen == 0:
             model.static_mask = None
         else:
             model.static_mask = self.freezer.frozen.clone()
 
     def _times(self):
-        ts = list(self.trainer.frame_times)
+        ts = list(self.run.frame_times)
         if len(ts) > self.max_times:
             idx = np.linspace(0, len(ts) - 1, self.max_times).round().astype(int)
             ts = [ts[i] for i in idx]
         return ts
 
     def schedule(self) -> tuple[int, int]:
-        """(first check, steps between checks) in the trainer's virtual steps (engine.train.loop.schedule)."""
-        tr = self.trainer
+        """(first check, steps between checks) in the run's virtual steps (engine.train.loop.schedule)."""
+        tr = self.run
         s0 = tr.schedule.static_end(tr.cfg.schedule.static_fraction)
         deform_steps = max(1, tr.schedule.nominal - s0)
         start = s0 + int(self.start_fraction * deform_steps)
@@ -441,10 +441,10 @@ class TrainFreezer:
         if not self._active():
             return None
         start, every = self.schedule()
-        if self.trainer.schedule.mark_at(step, start, every) is None:
+        if self.run.schedule.mark_at(step, start, every) is None:
             return None
         f = self._ensure()
-        tr = self.trainer
+        tr = self.run
         g = tr.model.gaussians
         field = tr.model.deformation
         views = {}
@@ -473,7 +473,7 @@ class TrainFreezer:
 
     def load_state_dict(self, state: dict) -> None:
         fs = state.get("freezer")
-        dev = self.trainer.model.gaussians.means.device if self.trainer.model is not None else "cpu"
+        dev = self.run.model.gaussians.means.device if self.run.model is not None else "cpu"
         self.freezer = None if fs is None else Freezer.from_state_dict(fs, device=dev)
         self.log = list(state.get("log", []))
         self.num_checks = int(state.get("num_checks", len(self.log)))
