@@ -41,7 +41,10 @@ def test_eval_prints_metrics_json(run_dir, capsys):
     assert 0.0 < out["lpips"] < 1.0
     rows = (run_dir / "eval_frames.csv").read_text().splitlines()
     assert rows[0].split(",")[:4] == ["index", "time", "camera", "interframe"] and len(rows) == 62
-    assert rows[0].split(",")[-1] == "lpips" and all(0 < float(r.split(",")[-1]) < 1 for r in rows[1:])
+    assert rows[0].split(",")[-2:] == ["lpips", "psnr_static"]
+    assert all(0 < float(r.split(",")[-2]) < 1 and 5 < float(r.split(",")[-1]) < 60 for r in rows[1:])
+    assert 5 < out["psnr_static_instants"] < 60 and 5 < out["psnr_static_interframe"] < 60
+    assert 0.0 <= out["static_colour_shift"] < 0.5 and 0.0 < out["static_fraction"] < 1.0
     assert json.loads((run_dir / "metrics.json").read_text())["psnr"] == out["psnr"]
 
 

@@ -51,3 +51,33 @@ def test_interframe_classification():
     assert is_interframe(1 / 300, rgb) and is_interframe(0.05, rgb)
     assert not is_interframe(0.1, rgb)                # after the last RGB frame
     assert not is_interframe(0.01, [0.0])
+
+
+def test_static_mask_keeps_only_pixels_that_never_change():
+    from engine.evaluate.metrics import static_mask
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.2, 0.8, (6, 8, 3)).astype(np.float32)
+    frames = [base + rng.uniform(-0.01, 0.01, base.shape).astype(np.float32) for _ in range(5)]  # noise < tol
+    frames[2][1, 2] += 0.2                       # something passes once
+    frames[4][3, :, 0] = 0.0                     # a row changes in one channel
+    m = static_mask(frames, tol=0.03)
+    assert m.shape == (6, 8) and not m[1, 2] and not m[3].any()
+    assert m.sum() == 6 * 8 - 1 - 8
+
+
+def test_static_colour_shift_measures_repainting_between_instants():
+    from engine.evaluate.metrics import static_colour_bias, static_colour_shift
+
+    gt = np.full((4, 4, 3), 0.5, np.float32)
+    mask = np.ones((4, 4), bool)
+    mask[0] = False
+    held = [static_colour_bias(gt + 0.02, gt, mask) for _ in range(4)]   # a constant error: no shift
+    assert static_colour_shift(held, [False, True, True, False]) == pytest.approx(0.0, abs=1e-7)
+    drift = gt.copy()
+    drift[..., 2] += 0.05                                               # blue between the instants
+    drift[0] = 1.0                                                      # outside the mask: ignored
+    biases = [static_colour_bias(gt, gt, mask), static_colour_bias(drift, gt, mask), static_colour_bias(gt, gt, mask)]
+    assert static_colour_shift(biases, [False, True, False]) == pytest.approx(0.05, abs=1e-6)
+    assert static_colour_shift(biases, [False, False, False]) is None  # no frame between instants
+    assert static_colour_bias(gt, gt, np.zeros((4, 4), bool)) is None

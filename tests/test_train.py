@@ -57,6 +57,9 @@ def test_static_scene_is_recovered_from_random_init(static_capture, tmp_path):
     # an untrained model (random colours, opacity 0.1) scores ~10 dB on this scene
     assert m["psnr"] > 19.0, m
     assert m["ssim"] > 0.6, m
+    # a static scene: every pixel is static, and a model without motion renders them alike at every instant
+    assert m["static_fraction"] > 0.99 and abs(m["psnr_static"] - m["psnr"]) < 0.05, m
+    assert m["static_colour_shift"] is None or m["static_colour_shift"] < 1e-4, m
 
 
 @pytest.mark.slow

@@ -9,6 +9,11 @@ returns one JSON-able dict:
 * ``psnr_dynamic``: PSNR over motion-mask pixels (GT changes across neighbouring eval frames),
   averaged over frames that have any;
 * ``lpips``: LPIPS-Alex (``lpips.py``; lower is better), mean over all eval frames;
+* ``psnr_static``, ``psnr_static_instants``, ``psnr_static_interframe``: PSNR over the pixels
+  whose ground truth never changes over the capture (per eval camera, ``static_mask``), over
+  all frames, the frames at RGB instants and those between them; ``static_colour_shift``: the
+  largest change of those pixels' mean colour error between RGB instants (0: what does not
+  move renders the same at every instant); ``static_fraction``: their share of the pixels;
 * ``n_frames``, ``n_interframe``, ``train_seconds``, ``num_gaussians``, ``render_seconds``;
 * ``fill_holes``: with ``fill_holes=True`` frames are scored as a viewer of an opaque render
   sees them, uncovered pixels filled from their covered neighbourhood
@@ -17,7 +22,7 @@ returns one JSON-able dict:
   test captures) would be scored against invented colour.
 
 It writes RUN/eval_frames.csv (index, time, camera, interframe, psnr, ssim, psnr_dynamic,
-lpips) and RUN/metrics.json. ``scene=`` scores an already opened result instead (e.g. a
+lpips, psnr_static) and RUN/metrics.json. ``scene=`` scores an already opened result instead (e.g. a
 compact cache, ``engine.export.cached``), whose path is then only a label.
 """
 from __future__ import annotations
@@ -37,7 +42,7 @@ from ..io.fileio import atomic_write
 from ..scene.model import load_run
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE
 from .lpips import lpips
-from .metrics import is_interframe, motion_masks, psnr, ssim
+from .metrics import is_interframe, motion_masks, psnr, ssim, static_colour_bias, static_colour_shift, static_mask
 
 LPIPS_BATCH = 16  # eval frames per LPIPS forward pass: batching is ~15x faster than one by one on 2 cores
 
@@ -52,7 +57,7 @@ def _round(x, nd=4):
 
 
 def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_threshold: float = 0.04,
-             mask_dilate: int = 2, scene=None, fill_holes: bool = False) -> dict:
+             mask_dilate: int = 2, scene=None, fill_holes: bool = False, static_tol: float = 0.03) -> dict:
 
     run_dir = Path(run_dir)
     scene = load_run(run_dir, device=device) if scene is None else scene
@@ -79,17 +84,22 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         fs = sorted(fs, key=lambda fr: fr.time)
         gts = [fr.load_rgb() for fr in fs]
         masks = motion_masks(gts, mask_threshold, mask_dilate)
+        still = static_mask(gts, static_tol) if len(gts) > 1 else np.zeros(np.shape(gts[0])[:2], bool)
         for fr, gt, mask in zip(fs, gts, masks):
             pred = scene.render([cap.view(fr)], fill_holes=fill_holes)[0]["rgb"]
             p_dyn = psnr(pred, gt, mask) if mask.any() else float("nan")
             rows.append({"time": float(fr.time), "camera": cam, "interframe": is_interframe(fr.time, rgb_times),
                          "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "psnr_dynamic": p_dyn,
-                         "mask_fraction": float(mask.mean()), "lpips": float("nan")})
+                         "mask_fraction": float(mask.mean()), "lpips": float("nan"),
+                         "psnr_static": psnr(pred, gt, still) if still.any() else float("nan"),
+                         "static_bias": static_colour_bias(pred, gt, still), "static_fraction": float(still.mean())})
             pairs.append((rows[-1], pred, gt))
     render_s = time.perf_counter() - t0
     _score_lpips(pairs, device)
     rows.sort(key=lambda r: (r["time"], r["camera"]))
     inter = [r for r in rows if r["interframe"]]
+    shifts = [static_colour_shift([r["static_bias"] for r in rows if r["camera"] == cam],
+                                  [r["interframe"] for r in rows if r["camera"] == cam]) for cam in by_cam]
     try:
         run_info = read_run_json(run_dir)
     except RunError:
@@ -101,6 +111,11 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
         "ssim_interframe": _round(_mean(r["ssim"] for r in inter)),
         "psnr_dynamic": _round(_mean(r["psnr_dynamic"] for r in rows)),
         "lpips": _round(_mean(r["lpips"] for r in rows)),
+        "psnr_static": _round(_mean(r["psnr_static"] for r in rows)),
+        "psnr_static_instants": _round(_mean(r["psnr_static"] for r in rows if not r["interframe"])),
+        "psnr_static_interframe": _round(_mean(r["psnr_static"] for r in inter)),
+        "static_colour_shift": _round(max((x for x in shifts if x is not None), default=None), 5),
+        "static_fraction": _round(_mean(r["static_fraction"] for r in rows)),
         "n_frames": len(rows),
         "n_interframe": len(inter),
         "train_seconds": _round(run_info.get("train_seconds"), 2),
@@ -117,11 +132,12 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
     if write:
         buf = io.StringIO()
         w = csv.writer(buf)
-        w.writerow(["index", "time", "camera", "interframe", "psnr", "ssim", "psnr_dynamic", "lpips"])
+        w.writerow(["index", "time", "camera", "interframe", "psnr", "ssim", "psnr_dynamic", "lpips", "psnr_static"])
         for i, r in enumerate(rows):
             w.writerow([i, f"{r['time']:.6f}", r["camera"], int(r["interframe"]), f"{r['psnr']:.4f}",
                         f"{r['ssim']:.5f}", "" if math.isnan(r["psnr_dynamic"]) else f"{r['psnr_dynamic']:.4f}",
-                        "" if math.isnan(r["lpips"]) else f"{r['lpips']:.5f}"])
+                        "" if math.isnan(r["lpips"]) else f"{r['lpips']:.5f}",
+                        "" if math.isnan(r["psnr_static"]) else f"{r['psnr_static']:.4f}"])
         atomic_write(run_dir / "eval_frames.csv", lambda fh: fh.write(buf.getvalue().encode()))
         write_json(run_dir / "metrics.json", result)
     return result

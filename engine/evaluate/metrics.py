@@ -1,8 +1,10 @@
 """Image metrics on sRGB-encoded images in [0, 1] (numpy [H,W,3] or torch).
 
 PSNR and SSIM (pytorch_msssim, ``data_range=1``, 11x11 Gaussian window, as the papers
-report) and a motion mask from ground truth: pixels whose ground truth changes between
-neighbouring eval frames by more than ``threshold`` (max over channels), dilated.
+report); a motion mask from ground truth (pixels whose ground truth changes between
+neighbouring eval frames by more than ``threshold``, max over channels, dilated); and the
+static pixels (whose ground truth never changes over the capture) with the drift of their
+mean colour between RGB instants.
 """
 from __future__ import annotations
 
@@ -90,3 +92,31 @@ def is_interframe(t: float, rgb_times, tol: float = 1e-4) -> bool:
     if np.min(np.abs(times - t)) <= tol:
         return False
     return bool(times[0] < t < times[-1])
+
+
+def static_mask(gts: list, tol: float = 0.03) -> np.ndarray:
+    """bool [H, W]: the pixels whose ground truth never changes over a camera's frames ``gts``
+    ([H, W, C] each): within ``tol`` of their temporal median in every frame and channel. What
+    does not move must render identically at every instant; these pixels measure it."""
+    stack = np.stack([np.asarray(g, np.float32)[..., :3] for g in gts])
+    return (np.abs(stack - np.median(stack, axis=0)).max(axis=(0, 3)) <= tol)
+
+
+def static_colour_bias(pred, gt, mask: np.ndarray) -> np.ndarray | None:
+    """[3]: the mean colour error (render - truth) over the ``mask`` pixels, or None if empty."""
+    if not mask.any():
+        return None
+    p = pred.detach().cpu().numpy() if isinstance(pred, torch.Tensor) else np.asarray(pred)
+    return (p.astype(np.float32)[..., :3][mask] - np.asarray(gt, np.float32)[..., :3][mask]).mean(axis=0)
+
+
+def static_colour_shift(biases: list, interframe: list) -> float | None:
+    """The largest change of the static pixels' mean colour error between RGB instants: max over the
+    between-instant frames of max_c |bias_t - bias at the RGB instants| (their mean). 0 for a model
+    that holds still what does not move; None without both kinds of frame."""
+    at = [b for b, inter in zip(biases, interframe) if b is not None and not inter]
+    between = [b for b, inter in zip(biases, interframe) if b is not None and inter]
+    if not at or not between:
+        return None
+    ref = np.mean(at, axis=0)
+    return float(max(np.abs(b - ref).max() for b in between))
