@@ -23,6 +23,7 @@ import math
 
 import bpy
 import numpy as np
+from capture_novel import _object_coords  # object-space coordinates times a scale: the texture vector
 
 TARGET = (0.0, 0.0, 0.3)
 CAMERA_EYES: dict = {}
@@ -98,22 +99,11 @@ def object_poses(t: float, speed: float = 1.0) -> dict:
     return out
 
 
-def _coords(nt, per_m: float):
-    """Texture vector: object-space coordinates (metres) times ``per_m``: square texels of a
-    size set in metres on any mesh, whatever its extent."""
-    coord = nt.nodes.new("ShaderNodeTexCoord")
-    mul = nt.nodes.new("ShaderNodeVectorMath")
-    mul.operation = "SCALE"
-    mul.inputs["Scale"].default_value = per_m
-    nt.links.new(coord.outputs["Object"], mul.inputs[0])
-    return mul.outputs["Vector"]
-
-
 def _colour(nt, mix, tex: dict, length: float):
     """The colour output of a texture draw (``_texture_draw``): ``tex["scale"]`` texels across
     ``length`` metres (the set's distance, or an object's size)."""
     a, b = (tuple(c) + (1.0,) for c in tex["colours"])
-    vec = _coords(nt, tex["scale"] / max(length, 1e-6))
+    vec = _object_coords(nt, tex["scale"] / max(length, 1e-6))  # square texels of a size in metres
     if tex["kind"] == "weak":  # faint, low frequency: +-3 % around one colour
         noise = nt.nodes.new("ShaderNodeTexNoise")
         noise.inputs["Scale"].default_value = 0.3
@@ -124,19 +114,14 @@ def _colour(nt, mix, tex: dict, length: float):
         ramp.color_ramp.elements[1].color = tuple(min(1.0, c * 1.03) for c in a[:3]) + (1.0,)
         nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
         return ramp.outputs["Color"]
-    if tex["kind"] == "bricks":
-        node = nt.nodes.new("ShaderNodeTexBrick")
+    if tex["kind"] in ("bricks", "checker"):
+        node = nt.nodes.new("ShaderNodeTexBrick" if tex["kind"] == "bricks" else "ShaderNodeTexChecker")
         node.inputs["Color1"].default_value = a
         node.inputs["Color2"].default_value = b
         node.inputs["Scale"].default_value = 1.0
         nt.links.new(vec, node.inputs["Vector"])
-        return node.outputs["Color"]
-    if tex["kind"] == "checker":
-        node = nt.nodes.new("ShaderNodeTexChecker")
-        node.inputs["Color1"].default_value = a
-        node.inputs["Color2"].default_value = b
-        node.inputs["Scale"].default_value = 1.0
-        nt.links.new(vec, node.inputs["Vector"])
+        if tex["kind"] == "bricks":
+            return node.outputs["Color"]
         noise = nt.nodes.new("ShaderNodeTexNoise")
         noise.inputs["Scale"].default_value = 2.0
         nt.links.new(vec, noise.inputs["Vector"])
