@@ -55,7 +55,3 @@ class RunContext:
     @property
     def total_steps(self) -> int:
         return self.schedule.total
-
-    @property
-    def static_steps(self) -> int:
-        return self.schedule.static_steps(self.cfg.schedule.static_fraction)

@@ -33,7 +33,7 @@ from ...cameras import View
 from ...colour import linear_to_srgb, luminance, srgb_to_linear
 from ...spike.render import estimate_sensor
 from ...spike.simulate import tfi, tfp
-from .interpolation import flow_consistency, flow_interpolate, interpolation_inconsistency
+from .interpolation import flow_interpolate
 
 __all__ = ["KINDS", "SyntheticFrame", "baseline_frames", "with_baseline", "reinhard_transfer",
            "spike_to_gray", "rgb_to_lab_reinhard", "lab_reinhard_to_rgb"]
@@ -53,8 +53,6 @@ class SyntheticFrame:
     role: str = "train"
     path: Path | None = None
     extra: dict = field(default_factory=dict)
-    # bool [H, W] or None: pixels the frame loss may use (``baseline_frames(mask_px=...)``)
-    trusted: np.ndarray | None = None
     # False: its instant is no RGB instant (no trajectory knot, carry, birth, spike interval or
     # stereo pair: ``baseline_frames(knots=False)``, TrainConfig.baseline_instants="real")
     knot: bool = True
@@ -154,20 +152,16 @@ PER_INTERVAL = 9  # synthetic frames per RGB interval (30 -> 300 FPS)
 
 def baseline_frames(capture, kind: str, *, per_interval: int | None = None, cameras=None, sensor=None,
                     spike_method: str = "tfp", colour: str = "reinhard", window: int = 64,
-                    mask_px: float = 0.0, knots: bool = True) -> list[SyntheticFrame]:
+                    knots: bool = True) -> list[SyntheticFrame]:
     """Synthetic in-between frames for the baseline ``kind`` (see :data:`KINDS`).
 
     ``cameras``: training cameras to synthesise for (default: all training cameras; for
     ``spike2img``, the cameras co-located with a spike stream). ``sensor``: the spike
-    sensor model (default: :func:`engine.spike.render.estimate_sensor`). ``mask_px`` > 0
-    (``interp-flow`` only): each frame's ``trusted`` map leaves out the pixels whose
-    :func:`engine.train.frames.interpolation.interpolation_inconsistency` exceeds it. ``knots``
-    False: the frames' ``knot`` is False (their instants are not RGB instants)."""
+    sensor model (default: :func:`engine.spike.render.estimate_sensor`). ``knots`` False: the
+    frames' ``knot`` is False (their instants are not RGB instants)."""
     if kind not in KINDS:
         raise ValueError(f"unknown baseline {kind!r}; choose from {', '.join(KINDS)}")
     per_interval = PER_INTERVAL if per_interval is None else int(per_interval)
-    if mask_px < 0:
-        raise ValueError(f"baseline mask_px must be >= 0 (got {mask_px})")
     by_cam: dict[str, list] = {}
     for f in capture.frames:
         if getattr(f, "role", "train") == "train" and not getattr(f, "extra", {}).get("synthetic"):
@@ -193,22 +187,18 @@ def baseline_frames(capture, kind: str, *, per_interval: int | None = None, came
                 sens = sensor
         for fa, fb in pairs:
             a_img, b_img = fa.load_rgb(), fb.load_rgb()
-            flows = cons = None
+            flows = None
             for j in range(1, per_interval + 1):
                 eps = j / (per_interval + 1)
                 t = fa.time + eps * (fb.time - fa.time)
-                trusted = None
                 if kind == "repeat":
                     img = a_img
                 elif kind == "interp-linear":
                     img = (1 - eps) * a_img + eps * b_img
                 elif kind == "interp-flow":
                     res, flows = flow_interpolate(torch.as_tensor(a_img), torch.as_tensor(b_img), eps,
-                                                  flows=flows, return_flows=True, consistency=cons)
+                                                  flows=flows, return_flows=True)
                     img = res.clamp(0, 1).numpy()
-                    if mask_px > 0:
-                        cons = flow_consistency(*flows) if cons is None else cons
-                        trusted = (interpolation_inconsistency(flows, eps, cons)[0, 0] <= mask_px).numpy()
                 else:
                     if not (stream.t0 <= t < stream.t_end):
                         continue
@@ -218,7 +208,7 @@ def baseline_frames(capture, kind: str, *, per_interval: int | None = None, came
                     img = _colourise(_upsample(gray, h, w), ref, colour)
                 out.append(SyntheticFrame(np.ascontiguousarray(img, dtype=np.float32), cam, float(t),
                                           np.array(fa.c2w),
-                                          fa.intrinsics, "train", None, {"synthetic": kind}, trusted, bool(knots)))
+                                          fa.intrinsics, "train", None, {"synthetic": kind}, bool(knots)))
     return out
 
 

@@ -26,7 +26,7 @@ KERNELS = LazyKernels(__package__, "_flow_kernels")  # lk_flow's box filter, med
 # numba kernels (bench-step's "step-before" variant switches it)
 FUSED_BOX = True
 
-__all__ = ["linear_blend", "lk_flow", "warp", "flow_consistency", "flow_interpolate", "interpolation_inconsistency",
+__all__ = ["linear_blend", "lk_flow", "warp", "flow_consistency", "flow_interpolate",
            "interpolate", "block_colour_loss", "avg_pool_blocks", "resample_area"]
 
 
@@ -249,18 +249,6 @@ def _intermediate_flows(f_ab: torch.Tensor, f_ba: torch.Tensor, t: float) -> tup
     f_t0 = -(1 - t) * t * f_ab + t * t * f_ba
     f_t1 = (1 - t) * (1 - t) * f_ab - t * (1 - t) * f_ba
     return f_t0, f_t1
-
-
-def interpolation_inconsistency(flows, eps: float, consistency=None) -> torch.Tensor:
-    """Per pixel of the frame :func:`flow_interpolate` makes at ``eps`` from ``flows`` =
-    (flow_ab, flow_ba) [B, 2, H, W]: the smaller of the two source flows' forward-backward
-    inconsistencies (pixels) at the locations it samples, [B, 1, H, W]. Large where neither
-    source frame explains the pixel (occlusions, and the flow's failures on objects that move
-    or change size by more than its search reaches): the blend there is a guess."""
-    f_ab, f_ba = flows
-    cons_a, cons_b = flow_consistency(f_ab, f_ba) if consistency is None else consistency
-    f_t0, f_t1 = _intermediate_flows(f_ab, f_ba, float(eps))
-    return torch.minimum(warp(cons_a, f_t0), warp(cons_b, f_t1))
 
 
 def flow_interpolate(a: torch.Tensor, b: torch.Tensor, eps: float, *, flows=None,

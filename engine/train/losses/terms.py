@@ -28,26 +28,18 @@ def frame_item_fields(frame, cfg: TrainConfig, device) -> dict:
     """The run item's fields that say how a train frame is supervised: ``synthetic``
     (a baseline's generated frame, engine.train.frames.baselines), ``knot`` (its instant is an RGB
     instant: trajectory knot, scene-flow carry, spike intervals; the frame's ``knot``, from
-    ``cfg.baseline.instants``), and for synthetic frames ``loss_scale``
-    (``cfg.baseline.weight``) and ``trusted`` (bool [1, H, W, 1] of the pixels the frame loss
-    uses, or absent: all)."""
+    ``cfg.baseline.instants``), and for synthetic frames ``loss_scale`` (``cfg.baseline.weight``)."""
     synthetic = bool(getattr(frame, "extra", {}).get("synthetic"))
     out = {"synthetic": synthetic, "knot": bool(getattr(frame, "knot", True))}
     if synthetic:
         out["loss_scale"] = float(cfg.baseline.weight)
-        trusted = getattr(frame, "trusted", None)
-        if trusted is not None:
-            out["trusted"] = torch.as_tensor(trusted, dtype=torch.bool, device=device)[None, ..., None]
     return out
 
 
 def _frame_target(ctx: "StepContext"):
-    """(target image [1, H, W, 3], weight) of the frame loss: a synthetic frame's untrusted
-    pixels take the render itself (no gradient there, for L1 and, up to its windows, D-SSIM)."""
+    """(target image [1, H, W, 3], weight) of the frame loss (a synthetic frame's ``loss_scale``)."""
     item = ctx.item
-    trusted = item.get("trusted")
-    target = item["image"] if trusted is None else torch.where(trusted, item["image"], ctx.rgb.detach())
-    return target, item.get("loss_scale", 1.0)
+    return item["image"], item.get("loss_scale", 1.0)
 
 
 @dataclass

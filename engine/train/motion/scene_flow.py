@@ -128,34 +128,13 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return img[vi, ui]
 
 
-def _sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of ``img`` [H, W, C] at pixel coordinates ``uv`` [N, 2] (corner at (0, 0),
-    pixel centres at +0.5, clamped at the border)."""
-    h, w = img.shape[:2]
-    x = np.clip(uv[:, 0] - 0.5, 0, w - 1)
-    y = np.clip(uv[:, 1] - 0.5, 0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(int), w - 2) if w > 1 else np.zeros(len(x), int)
-    y0 = np.minimum(np.floor(y).astype(int), h - 2) if h > 1 else np.zeros(len(y), int)
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x1])
-            + fy * ((1 - fx) * img[y1, x0] + fx * img[y1, x1]))
-
-
 def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_a: np.ndarray, ok_a: np.ndarray,
                   depth_b: np.ndarray, ok_b: np.ndarray, *, depth_tol: float = 0.05,
-                  min_flow_px: float = 0.5, return_still: bool = False, flow_ba: np.ndarray | None = None,
-                  fb_tol_px: float = 1.0):
+                  min_flow_px: float = 0.5, return_still: bool = False):
     """(positions at ``t_b`` [N, 3], carried bool [N]) for Gaussians at ``positions`` (``t_a``)
     seen by the static camera ``view``; rows not carried are returned unchanged. With
-    ``return_still`` also the bool [N] of visible surface Gaussians that do not move.
-
-    ``flow_ba`` (the flow back from ``t_b``) turns on the forward-backward check: a pixel
-    whose round trip misses by more than ``fb_tol_px`` (+ 10 % of its flow) is covered at
-    ``t_b`` (or its flow is wrong), and lifting it with the depth there would put it on the
-    surface in front -- on the fast scene the cube's Gaussians landed on the ball crossing it,
-    both became translucent ghosts. Those Gaussians are left undecided (the caller gives them
-    their nearest decided neighbour's motion)."""
+    ``return_still`` also the bool [N] of visible surface Gaussians that do not move. (A
+    forward-backward check of the flow was measured and dropped: docs/experiments/motion-representation.md.)"""
     pos = np.asarray(positions, np.float64)
     uv, z = project_points(view, pos)
     h, w = depth_a.shape
@@ -171,9 +150,6 @@ def carry_by_flow(positions: np.ndarray, view: View, flow_ab: np.ndarray, depth_
     fl = np.linalg.norm(f, axis=1)
     moving = fl >= min_flow_px
     carried = surface & inside_b & _sample(ok_b, uv_b) & moving
-    if flow_ba is not None:
-        back = _sample_bilinear(flow_ba, uv_b)
-        carried &= np.linalg.norm(f + back, axis=1) <= fb_tol_px + 0.1 * fl
     out = pos.copy()
     if carried.any():
         # keep the Gaussian's offset from the surface along the ray (it sat at z, the surface at da)
