@@ -42,14 +42,19 @@ _EXT = {"OPEN_EXR": ".exr", "PNG": ".png"}
 _SCENE4D_CACHE: dict = {}
 
 
-def get_scene4d(run_dir: str, prune_unobserved: bool = False):
-    """engine Scene4D for a run folder (cached while its checkpoint is unchanged), optionally
-    without the Gaussians no train camera constrained (issue 14)."""
-    ck = Path(run_dir) / "checkpoint.pt"
-    key = (str(run_dir), ck.stat().st_mtime if ck.exists() else None, bool(prune_unobserved))
+def get_scene4d(source: str, prune_unobserved: bool = False):
+    """The engine's result for a run folder or a compact cache (``.bt4c``), kept while its file
+    is unchanged; a run folder optionally without the Gaussians no train camera constrained
+    (issue 14), which a compact cache cannot tell."""
+    path = Path(source)
+    if path.is_file() and prune_unobserved:
+        raise RuntimeError(f"{path}: Drop Unobserved Gaussians needs the run folder; this is a compact cache")
+    ck = path if path.is_file() else path / "checkpoint.pt"
+    key = (str(source), ck.stat().st_mtime if ck.exists() else None, bool(prune_unobserved))
     if key not in _SCENE4D_CACHE:
         _SCENE4D_CACHE.clear()
-        _SCENE4D_CACHE[key] = engine_bridge.load_run(run_dir, device="cpu", prune_unobserved=prune_unobserved)
+        _SCENE4D_CACHE[key] = (engine_bridge.load_result(source, device="cpu") if path.is_file() else
+                               engine_bridge.load_run(source, device="cpu", prune_unobserved=prune_unobserved))
     return _SCENE4D_CACHE[key]
 
 

@@ -149,3 +149,35 @@ def test_render_job_in_thread_png_alpha_and_cancel(tmp_path):
     job = worker.Job(worker.render_views_job, scene4d=model, views=views[:1], outputs=exr[:1]).run_sync()
     z = read_exr_channels(exr[0])
     assert z["Z"][ref["alpha"] > 0.5].max() < 10 and z["Z"][ref["alpha"] < 1e-6].min() == pytest.approx(1e10)
+
+
+def test_render_path_of_a_result_loaded_from_a_compact_cache(rt_scene, reconstructed, demo_capture, tmp_path):
+    """Issue 45, defect 1: a result delivered as a ``.bt4c`` renders along a path; the frames are
+    the run folder's within the cache's quantisation. Drop Unobserved needs the run folder."""
+
+    from engine.io.images import read_image_rgba
+
+    cache = tmp_path / "result.bt4c"
+    from engine.__main__ import main
+
+    assert main(["export", str(reconstructed["run_dir"]), "--format", "compact", "--fps", "100",
+                 "--out", str(cache)]) == 0
+    assert bpy.ops.bt4d.import_capture(directory=str(demo_capture)) == {"FINISHED"}
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 2
+    scene.render.resolution_percentage = 25
+    images = {}
+    # as a user does: load the cache, add an orbit, render the path (the result says where it came from)
+    for name, kw in (("cache", {"filepath": str(cache)}), ("run", {"directory": str(reconstructed["run_dir"])})):
+        assert bpy.ops.bt4d.load_result(num_samples=4, **kw) == {"FINISHED"}
+        if scene.camera is None or not scene.camera.name.startswith("BT4D Orbit"):
+            assert bpy.ops.bt4d.add_orbit_camera(turns=0.25) == {"FINISHED"}
+        scene.render.filepath = str(tmp_path / name / "f_")
+        source = {} if name == "cache" else {"run_dir": str(reconstructed["run_dir"])}
+        assert bpy.ops.bt4d.render_path(file_format="PNG", **source) == {"FINISHED"}
+        images[name] = [read_image_rgba(tmp_path / name / f"f_{f:04d}.png") for f in (1, 2)]
+    for a, b in zip(images["run"], images["cache"]):
+        mse = float(np.mean((a[..., :3] - b[..., :3]) ** 2))
+        assert 10 * np.log10(1.0 / max(mse, 1e-12)) > 30.0
+    with pytest.raises(RuntimeError, match="compact cache"):
+        bpy.ops.bt4d.render_path(file_format="PNG", run_dir=str(cache), prune_unobserved=True)
