@@ -143,7 +143,7 @@ def test_training_with_reused_buffers_is_bit_for_bit_the_fresh_path(demo_capture
             tr.init_model()
             for i in range(10):
                 tr.step(i)
-            close_flow_worker(tr)
+            close_flow_worker(tr.run)
             opt = tr.model.gaussians.optimizer
             h = hashlib.sha1()
             for grp in opt.param_groups:

@@ -354,7 +354,7 @@ def test_auto_on_a_short_capture_trains_bit_for_bit_as_exact(demo_capture):
             for step in range(120):
                 tr.step(step)
         finally:
-            close_flow_worker(tr)
+            close_flow_worker(tr.run)
         g = tr.model.gaussians
         h = hashlib.sha1()
         for n in g.param_names:
@@ -485,7 +485,7 @@ def test_rgb_only_runs_step_every_curve_lazily_with_reads_caught_up(demo_capture
         assert not full.model.gaussians.instants_only
         assert (full.model.gaussians.optimizer.min_columns, full.model.gaussians.optimizer.dense_inner_below) == (40, 0)
     finally:
-        close_flow_worker(full)
+        close_flow_worker(full.run)
 
 
 def test_a_read_catches_up_the_values_alone_with_the_same_numbers():

@@ -173,7 +173,7 @@ def test_training_in_place_is_bit_for_bit_the_copying_path(demo_capture):
             n0 = tr.model.gaussians.num_gaussians
             for i in range(24):
                 tr.step(i)
-            close_flow_worker(tr)
+            close_flow_worker(tr.run)
             g = tr.model.gaussians
             assert g.num_gaussians != n0
             if enabled:  # rows were appended in place: some storage holds spare rows

@@ -457,7 +457,7 @@ def _profile_run(cap, steps: int, preset: str, overrides: dict | None, rgb_only:
                 tr.step(i)  # a stage's set-up step, or the guided run's (identical) static stage
                 continue
             prof.run_step(tr, i, "static" if stage == "static" else deform)
-    spike_flow.close_flow_worker(tr)  # its prefetch worker must not run into the next run
+    spike_flow.close_flow_worker(tr.run)  # its prefetch worker must not run into the next run
     enc = getattr(tr.model.deformation, "fine_encoder", None)
     if enc is not None and hasattr(enc, "encoded"):  # spike windows encoded / shared / reused stale
         e = enc.encoded

@@ -56,10 +56,10 @@ from ..skipping.freezing import TrainFreezer
 from .scene_setup import capture_path, inside_box, robust_bounds, scene_extent, scene_points, train_frames
 from .schedule import Schedule
 
-# The loss factories of a run: each ``(trainer) -> [LossTerm]`` is called when a (non rgb_only) run starts. The spike
-# guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the along-ray prior,
-# the spike-view flow term and the quiet-curves hook (after the flow fit; issue 11) ride on its between instants.
-LossFactory = Callable[["Trainer"], "list[LossTerm] | None"]
+# The loss factories of a run: each ``(run context) -> [LossTerm]`` is called when a (non rgb_only) run starts. The
+# spike guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the spike-view
+# flow term and the quiet-curves hook (after the flow fit; issue 11) ride on its between instants.
+LossFactory = Callable[[RunContext], "list[LossTerm] | None"]
 LOSS_FACTORIES: tuple[LossFactory, ...] = (guidance_factory, spike_flow_factory, quiet_curves_factory)
 
 PRUNE_BIG_WORLD = 0.2  # densification prunes Gaussians whose largest scale exceeds this x extent (3DGS)
@@ -101,14 +101,10 @@ class Trainer:
 
     def __init__(self, capture, cfg: TrainConfig, *, device, seed: int = 0, rgb_only: bool = False,
                  total_steps: int | None = None, loss_factories: Sequence[LossFactory] = LOSS_FACTORIES):
-        self.run = RunContext(cfg, capture, None, 0, [], [], (0.0, 0.0), None)
+        # one SGBM fusion (FusionCache) for init points, depth priors and the flow carry
+        self.run = RunContext(cfg, capture, torch.device(device), int(seed), [], [], (0.0, 0.0), FusionCache(capture),
+                              rgb_only=bool(rgb_only))
         self._bind_run()
-        self.capture = capture
-        self.cfg = cfg
-        self.device = torch.device(device)
-        self.fusion_cache = FusionCache(capture)  # one SGBM fusion for init points, depth priors, flow carry
-        self.seed = int(seed)
-        self.rgb_only = bool(rgb_only)
         self.total_steps = int(total_steps or cfg.schedule.iterations)
         frames = train_frames(capture)
         if not frames:
@@ -118,7 +114,6 @@ class Trainer:
         self.held_back: list = []
         if cfg.skip.early_stop:
             frames, self.held_back = hold_back_frames(frames)
-        self.items = []
         for i, f in enumerate(frames):
             vt = view_tensors(capture.view(f), self.device)
             img = np.asarray(f.load_rgb(), dtype=np.float32)[..., :3]
@@ -128,7 +123,7 @@ class Trainer:
             vt["image"] = torch.from_numpy(np.ascontiguousarray(img)).to(self.device)[None]
             vt["index"] = i
             vt["camera"] = f.camera
-            vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight, mask
+            vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight
             self.items.append(vt)
         if cfg.losses.depth > 0:  # issue 14: fused SGBM depth at every RGB instant
             priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
@@ -144,8 +139,8 @@ class Trainer:
         self.model: Model4D | None = None
         self.deform_opt: torch.optim.Adam | None = None
         self.loss_terms = default_loss_terms(cfg)
-        self.post_step_hooks = geometry_post_step_hooks(cfg)  # issue 14: (trainer, step, item, meta)
-        # extension hooks (the spike branch): called with the trainer once the deformation
+        self.post_step_hooks = geometry_post_step_hooks(cfg)  # issue 14: (run, step, item, meta)
+        # extension hooks (the spike branch): called with the run context once the deformation
         # field exists (new run or resumed), e.g. to set ``field.fine_encoder`` and call
         # :meth:`add_deformation_parameters`; ``fine_provider(item) -> [N, W] | None`` feeds
         # the Eq. 10 fine feature of each step's render.
@@ -182,10 +177,6 @@ class Trainer:
         probe.run = dataclasses.replace(self.run, info=copy.deepcopy(self.run.info))
         probe._bind_run()
         return probe
-
-    def part(self, name: str):
-        """The part registered as ``name`` (``run.part``), or None."""
-        return self.run.part(name)
 
     def __getattr__(self, name: str):
         # the parts a factory registered (spike_guidance, spike_flow, quiet_curves) read as attributes
