@@ -118,7 +118,7 @@ def test_load_ours_points_and_json_file_path(tmp_path):
 
 def test_eval_role_camera_frames_go_to_eval(tmp_path):
     data = make_ours(tmp_path)
-    data["frames"].append(dict(data["eval_frames"][0]))
+    data["frames"].append(dict(data["eval_frames"][0], time=0.02))  # another instant of that camera
     _rewrite(tmp_path, data)
     cap = load_capture(tmp_path)
     assert len(cap.frames) == 6 and len(cap.eval_frames) == 2
@@ -329,3 +329,32 @@ def test_bad_points_file(tmp_path):
     cap = load_capture(tmp_path)
     with pytest.raises(CaptureError, match="points.ply"):
         cap.load_points()
+
+
+def test_two_frames_of_one_camera_at_one_time_are_refused(tmp_path):
+    """Issue 45, defect 2: which image trains that instant was a silent choice."""
+    data = make_ours(tmp_path)
+    write_png(tmp_path / "rgb" / "other.png", _img(50))
+    data["frames"].append({"file_path": "rgb/other.png", "camera": "rgb1", "time": 1 / 30,
+                           "transform_matrix": _pose(0.1)})
+    _rewrite(tmp_path, data)
+    msg = _expect(tmp_path, "transforms.json", "frames[6]", "frames[4]", "'rgb1'", "conflict")
+    assert "listed twice" not in msg
+    data["frames"][-1]["file_path"] = data["frames"][4]["file_path"]
+    _rewrite(tmp_path, data)
+    _expect(tmp_path, "transforms.json", "frames[6]", "listed twice")
+    data["frames"][-1]["time"] = 0.5  # another instant: fine
+    _rewrite(tmp_path, data)
+    assert len(load_capture(tmp_path).frames) == 7
+
+
+def test_nerfstudio_static_views_are_not_conflicts_but_repeated_poses_are(tmp_path):
+    for i in range(2):
+        write_png(tmp_path / f"f{i}.png", _img(i))
+    frames = [{"file_path": f"f{i}.png", "transform_matrix": _pose(i)} for i in range(2)]
+    data = {"fl_x": 9.0, "w": W, "h": H, "frames": frames}
+    (tmp_path / "transforms.json").write_text(json.dumps(data))
+    assert len(load_capture(tmp_path).frames) == 2  # two poses at t = 0: a static multi-view capture
+    frames[1]["transform_matrix"] = _pose(0)
+    (tmp_path / "transforms.json").write_text(json.dumps(data))
+    _expect(tmp_path, "transforms.json", "frames[1]", "frames[0]", "conflict")

@@ -246,6 +246,24 @@ def _find_points(root: Path, data: dict, ctx: CheckContext) -> Path | None:
 
 # ----------------------------------------------------------------------------- loaders
 
+def _refuse_conflicting_frames(ctx: CheckContext, entries: list[tuple[str, Frame]], *, same_pose_only: bool) -> None:
+    """Refuse two frames of one camera at one capture time (issue 45): which image trains that
+    instant would be a silent choice. ``entries``: (where, frame) in file order. In our format a
+    camera is one device, so any pair conflicts; nerfstudio / D-NeRF group frames into cameras
+    by intrinsics (many poses at t = 0 is a static multi-view capture), so there only a pair that
+    also shares the pose conflicts."""
+    seen: dict[tuple, tuple[str, Frame]] = {}
+    for where, f in entries:
+        key = (f.camera, round(float(f.time), 9))
+        if same_pose_only:
+            key += (tuple(np.round(np.asarray(f.c2w, np.float64), 9).ravel().tolist()),)
+        first, other = seen.setdefault(key, (where, f))
+        if first != where:
+            same = " (the same image listed twice)" if Path(other.path) == Path(f.path) else ""
+            ctx.fail(where, f"camera {f.camera!r} already has a frame at time {float(f.time):g} s in {first}{same}; "
+                            "two frames of one camera at one instant conflict: remove one or give it its own camera")
+
+
 def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
     ctx = CheckContext(tpath)
     cams_raw = data["cameras"]
@@ -279,9 +297,12 @@ def _load_ours(root: Path, tpath: Path, data: dict) -> Capture:
 
     all_frames = [frame(d, f"frames[{i}]", "train") for i, d in enumerate(ctx.list_of(data, "frames", required=True))]
     frames = [f for f in all_frames if f.role == "train"]
-    eval_frames = [frame(d, f"eval_frames[{i}]", "eval")
-                   for i, d in enumerate(ctx.list_of(data, "eval_frames", required=False))]
+    eval_extra = [frame(d, f"eval_frames[{i}]", "eval")
+                  for i, d in enumerate(ctx.list_of(data, "eval_frames", required=False))]
+    eval_frames = eval_extra
     eval_frames = [f for f in all_frames if f.role == "eval"] + eval_frames
+    _refuse_conflicting_frames(ctx, [(f"frames[{i}]", f) for i, f in enumerate(all_frames)]
+                               + [(f"eval_frames[{i}]", f) for i, f in enumerate(eval_extra)], same_pose_only=False)
 
     first_pose = {}
     for f in all_frames + eval_frames:
@@ -361,6 +382,7 @@ def _load_nerfstudio(root: Path, tpath: Path, data: dict) -> Capture:
             by_key[key] = name
             cameras[name] = CameraInfo(name, k, "train", dict(distortion))
         frames.append(Frame(path, by_key[key], t, c2w, k, "train"))
+    _refuse_conflicting_frames(ctx, [(f"frames[{i}]", f) for i, f in enumerate(frames)], same_pose_only=True)
     return Capture(root, cameras, frames, [], [], _find_points(root, data, ctx),
                    _time_range(frames, []), "nerfstudio", tpath)
 
@@ -394,6 +416,8 @@ def _load_dnerf(root: Path) -> Capture:
             c2w = ctx.matrix(ctx.get(d, "transform_matrix", where), f"{where}.transform_matrix")
             t = ctx.num(d["time"], f"{where}.time") if "time" in d else 0.0
             split_frames[split].append(Frame(path, split, t, c2w, k, role))
+        _refuse_conflicting_frames(ctx, [(f"frames[{i}]", f) for i, f in enumerate(split_frames[split])],
+                                   same_pose_only=True)
         if split == "train":
             points = _find_points(root, data, ctx)
     frames, evals = split_frames["train"], split_frames["test"]
