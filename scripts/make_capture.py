@@ -239,7 +239,14 @@ def rig(rgb_size, spike_size, scene, scene_name: str = "classic", angles: dict |
     for name in eyes:
         cams[name] = dict(intr=rgb_intr, c2w=look_at_c2w(eyes[name], target),
                           role="eval" if name.startswith("eval") else "train")
-    cams["spike0"] = dict(intr=rgb_intr.scaled(*spike_size), c2w=cams["rgb0"]["c2w"].copy(), role="train")
+    spike_intr = rgb_intr.scaled(*spike_size)
+    sw, sh = spike_size
+    if abs(sw * h - sh * w) > 0:
+        # a sensor of another shape (a Vidar camera is 400x250 beside a 4:3 or 3:2 RGB camera): a camera of
+        # its own, square pixels, the RGB lens's horizontal field of view (engine.spike.render.view_warp)
+        fs = f * sw / w
+        spike_intr = Intrinsics(sw, sh, fs, fs, sw / 2.0, sh / 2.0)
+    cams["spike0"] = dict(intr=spike_intr, c2w=cams["rgb0"]["c2w"].copy(), role="train")
     for name, cam in cams.items():
         cam["object"] = blender_cameras.create_camera_object(name, cam["intr"], cam["c2w"], scene.collection)
     return cams
@@ -354,7 +361,9 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", choices=sorted(PRESETS), default="demo")
     ap.add_argument("--seconds", type=float)
     ap.add_argument("--rgb-size", help="WxH of the RGB and eval cameras, e.g. 160x120")
-    ap.add_argument("--spike-size", help="WxH of the spike camera, e.g. 80x60")
+    ap.add_argument("--spike-size", help="WxH of the spike camera, e.g. 80x60 (the RGB shape: the same field of "
+                                         "view); another shape, e.g. 400x250 as a Vidar camera, is a camera of "
+                                         "its own: square pixels, the RGB lens's horizontal field of view")
     ap.add_argument("--eval-fps", type=float)
     ap.add_argument("--light-hz", type=float, help="rate at which linear light is rendered for the spike simulation")
     ap.add_argument("--samples", type=int, help="Cycles samples per pixel")

@@ -127,3 +127,34 @@ def test_bad_eval_angles_are_refused(tmp_path):
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=120)
     assert proc.returncode == 2 and "'left20' is not side<deg> or up<deg>" in proc.stdout
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+@NEEDS_BPY
+def test_a_vidar_shaped_spike_sensor_is_a_camera_of_its_own(tmp_path):
+    """--spike-size of another shape than the RGB (Vidar: 400x250, 16:10) renders the spike light
+    through its own lens (square pixels, the RGB horizontal field of view), and the engine maps the
+    RGB frame onto it (engine.spike.render.view_warp) better than squashing it would."""
+    import torch
+
+    from engine.spike.render import estimate_sensor, resample_to, rgb_to_luma_linear, sensor_light
+
+    out = tmp_path / "cap"
+    cmd = [sys.executable, str(REPO_ROOT / "scripts" / "make_capture.py"), "--out", str(out),
+           "--seconds", "0.05", "--rgb-size", "64x48", "--spike-size", "40x25", "--eval-fps", "100",
+           "--samples", "4", "--light-hz", "500", "--seed", "3"]
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-4000:]
+    cap = load_capture(out)
+    k, ks = cap.cameras["rgb0"].intrinsics, cap.cameras["spike0"].intrinsics
+    assert (ks.width, ks.height) == (40, 25) and ks.fx == pytest.approx(ks.fy)
+    assert ks.fx / ks.width == pytest.approx(k.fx / k.width)  # the same horizontal field of view
+    stream = cap.spike_streams[0].open()
+    sensor = estimate_sensor(cap, stream)
+    assert sensor.warp is not None and sensor.valid.all()  # 16:10 inside 4:3: every spike pixel is covered
+    rgb = torch.as_tensor(cap.frames_by_camera()["rgb0"][0].load_rgb(), dtype=torch.float32)
+    rate = stream.read(0, 200).mean(0)
+    through_lens = sensor_light(rgb, sensor).numpy().ravel()
+    squashed = resample_to(rgb_to_luma_linear(rgb), 25, 40).numpy().ravel()
+    c_lens, c_squash = np.corrcoef(rate.ravel(), through_lens)[0, 1], np.corrcoef(rate.ravel(), squashed)[0, 1]
+    assert c_lens > 0.8 and c_lens > c_squash + 0.02, (c_lens, c_squash)

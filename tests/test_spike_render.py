@@ -10,6 +10,7 @@ from engine.spike.render import (
     SensorModel,
     SpikeRenderer,
     cumulative_spike_loss,
+    estimate_sensor,
     expected_counts,
     fit_sensor,
     heaviside_surrogate,
@@ -166,3 +167,68 @@ def test_renderer_learned_scale_is_optional():
     img = torch.full((4, 4, 3), 0.5)
     r.render_counts(img, 10).sum().backward()
     assert r.log_scale_correction.grad is not None and float(r.log_scale_correction.grad.detach()) > 0
+
+
+# --------------------------------------------------------------------- a spike camera with its own field of view
+
+def _radiance(x, y):
+    """Linear luminance of the direction (x, y) = (X/Z, Y/Z) seen from the co-located cameras."""
+    return 0.45 + 0.3 * np.sin(7 * x + 1.0) * np.cos(5 * y) + 0.1 * np.sin(23 * x * y)
+
+
+def _image_of(k, s=8):
+    """The scene seen by pinhole ``k``: the luminance averaged over s x s points per pixel."""
+    u = (np.arange(k.width * s) + 0.5) / s
+    v = (np.arange(k.height * s) + 0.5) / s
+    xx, yy = np.meshgrid((u - k.cx) / k.fx, (v - k.cy) / k.fy)
+    return _radiance(xx, yy).reshape(k.height, s, k.width, s).mean(axis=(1, 3)).astype(np.float32)
+
+
+def test_a_spike_camera_with_its_own_field_of_view_sees_the_rgb_view_through_its_lens():
+    """A Vidar sensor is 400x250 (16:10) beside a 4:3 or 3:2 RGB camera with another lens: the RGB
+    render reaches each spike pixel through the two cameras' intrinsics, not by squashing the image
+    (which the same-field-of-view path keeps doing, unchanged)."""
+    from engine.cameras import Intrinsics
+    from engine.spike.render import luma_in_spike_view, same_field_of_view, view_warp
+
+    k_rgb = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
+    assert view_warp(k_rgb, k_rgb.scaled(80, 60)) is None and same_field_of_view(k_rgb, k_rgb.scaled(40, 30))
+    k_spike = Intrinsics(100, 62, 80.0, 80.0, 50.0, 31.0)  # square pixels, a wider lens, 16:10
+    grid, valid = view_warp(k_rgb, k_spike)
+    assert grid.shape == (62 * 4, 100 * 4, 2) and 0.5 < valid.mean() < 1.0
+    assert not valid[:, 0].any() and valid[31, 50]  # the RGB view ends before the spike sensor's edge
+    truth = _image_of(k_spike)
+    rgb_luma = torch.as_tensor(_image_of(k_rgb))
+    got = luma_in_spike_view(rgb_luma, SensorModel(width=100, height=62, warp=grid, valid=valid)).numpy()
+    squashed = resample_to(rgb_luma, 62, 100).numpy()
+    err, err_squash = np.abs(got - truth)[valid].mean(), np.abs(squashed - truth)[valid].mean()
+    assert err < 0.01 and err_squash > 5 * err, (err, err_squash)
+
+
+def test_estimate_sensor_fits_a_spike_camera_with_its_own_field_of_view(tmp_path):
+    from types import SimpleNamespace
+
+    from engine.cameras import Intrinsics
+    from engine.colour import linear_to_srgb
+    from engine.io.spikes import SpikeStream, write_spikes
+
+    k_rgb = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
+    k_spike = Intrinsics(100, 62, 80.0, 80.0, 50.0, 31.0)
+    lum = _image_of(k_rgb)
+    rgb = linear_to_srgb(np.repeat(lum[..., None], 3, -1))  # grey: luminance = each channel
+    seen = _image_of(k_spike)
+    n = 4000
+    spikes = simulate_spikes(seen * 0.6, rate_hz=20000, num_frames=n, dark_current=0.02, seed=3)
+    write_spikes(tmp_path / "s.dat", spikes)
+    stream = SpikeStream(tmp_path / "s.dat", 100, 62, 20000.0, 0.0, n, camera="spike0", co_located_with="rgb0",
+                         intrinsics=k_spike)
+    frames = [SimpleNamespace(camera="rgb0", time=t, load_rgb=lambda: rgb) for t in (0.02, 0.1, 0.18)]
+    capture = SimpleNamespace(frames=frames, cameras={"rgb0": SimpleNamespace(intrinsics=k_rgb)})
+    s = estimate_sensor(capture, stream)
+    assert s.warp is not None and s.info["covered_fraction"] < 1.0
+    assert abs(s.scale - 0.6) < 0.05 and abs(s.dark_current - 0.02) < 0.01
+    assert np.all(s.gain[~s.valid] == 1.0)
+    # the renderer predicts the observed counts through the spike camera's lens
+    pred = SpikeRenderer(s).render_counts(torch.as_tensor(rgb, dtype=torch.float32), n).numpy()
+    obs = spikes.sum(0)
+    assert np.abs(pred - obs)[s.valid].mean() / n < 0.01

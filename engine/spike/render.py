@@ -1,9 +1,14 @@
 """Dynamic spike rendering (BulletTime4D, paper Eq. 11-17): rendered RGB -> spikes.
 
 The light reaching the spike sensor is the image rendered at the spike camera's
-co-located RGB view (Eq. 11; beam splitter, same pose and field of view), converted to
-linear luminance, resampled to the spike resolution (Eq. 12) and passed through the sensor
-response (Eq. 13). We use the linearised response
+co-located RGB view (Eq. 11; beam splitter, same pose), converted to linear luminance,
+resampled to the spike resolution (Eq. 12) and passed through the sensor response (Eq. 13).
+When the spike camera has a field of view of its own (a real Vidar sensor is 400x250, an RGB
+camera 1080x720 or 4:3: other aspect, other lens), :func:`view_warp` maps each spike pixel
+through its own intrinsics into the RGB view (co-located: a pure change of intrinsics), and
+the luminance is sampled there (4x4 points per spike pixel, averaged) instead of rescaled; spike
+pixels the RGB view does not cover are left out of the fit and of the loss (``SensorModel.valid``).
+We use the linearised response
 
     light[p] = min(gain[p] * (scale * Y_lin[p] + dark_current), theta)   (per spike frame)
 
@@ -44,7 +49,7 @@ from ..colour import luminance, srgb_to_linear
 __all__ = [
     "SensorModel", "SpikeRenderer", "rgb_to_luma_linear", "resample_to", "sensor_light",
     "expected_counts", "integrate_and_fire", "spike_count_loss", "cumulative_spike_loss",
-    "estimate_sensor", "heaviside_surrogate",
+    "estimate_sensor", "heaviside_surrogate", "view_warp", "same_field_of_view", "luma_in_spike_view",
 ]
 
 
@@ -62,6 +67,11 @@ class SensorModel:
     gain: np.ndarray | None = None  # [h, w] float32, mean 1 (None: uniform)
     rate_hz: float = 20000.0
     info: dict = field(default_factory=dict)  # how it was estimated (fit residuals, ...)
+    # the spike camera's own field of view (:func:`view_warp`): sample points [h*s, w*s, 2] in the
+    # RGB view's grid_sample coordinates, and the spike pixels that view covers [h, w] (None: the
+    # spike sensor sees the RGB view's field of view, a rescale)
+    warp: np.ndarray | None = None
+    valid: np.ndarray | None = None
 
     def gain_tensor(self, device=None, dtype=torch.float32) -> torch.Tensor | None:
         if self.gain is None:
@@ -102,11 +112,63 @@ def resample_to(img: torch.Tensor, height: int, width: int, mode: str = "area") 
     return out.reshape(*lead, height, width)
 
 
+WARP_SUPERSAMPLE = 4  # sample points per spike pixel and axis when the spike camera has its own field of view
+
+
+def same_field_of_view(k_rgb, k_spike, rel_tol: float = 1e-3) -> bool:
+    """Whether ``k_spike`` is ``k_rgb`` at another resolution (normalised intrinsics agree)."""
+    a = np.array([k_rgb.fx / k_rgb.width, k_rgb.fy / k_rgb.height, k_rgb.cx / k_rgb.width, k_rgb.cy / k_rgb.height])
+    b = np.array([k_spike.fx / k_spike.width, k_spike.fy / k_spike.height, k_spike.cx / k_spike.width,
+                  k_spike.cy / k_spike.height])
+    return bool(np.all(np.abs(a - b) <= rel_tol * np.maximum(np.abs(a), 1e-9)))
+
+
+def view_warp(k_rgb, k_spike, supersample: int = WARP_SUPERSAMPLE) -> tuple[np.ndarray, np.ndarray] | None:
+    """None when the spike camera shares the co-located RGB camera's field of view; else
+    (points float32 [h*s, w*s, 2], valid bool [h, w]): ``s x s`` points per spike pixel, through
+    the spike intrinsics to a ray and through the RGB intrinsics to the RGB image, in
+    ``grid_sample`` coordinates (align_corners False); ``valid``: every point of that pixel
+    lands inside the RGB image."""
+    if same_field_of_view(k_rgb, k_spike):
+        return None
+    s = max(1, int(supersample))
+    w, h = int(k_spike.width), int(k_spike.height)
+    u = (np.arange(w * s) + 0.5) / s  # sub-pixel centres, spike pixel units
+    v = (np.arange(h * s) + 0.5) / s
+    x = (u - k_spike.cx) / k_spike.fx
+    y = (v - k_spike.cy) / k_spike.fy
+    ur = k_rgb.fx * x + k_rgb.cx
+    vr = k_rgb.fy * y + k_rgb.cy
+    gx = ur / k_rgb.width * 2.0 - 1.0
+    gy = vr / k_rgb.height * 2.0 - 1.0
+    grid = np.stack(np.meshgrid(gx, gy), -1).astype(np.float32)  # [h*s, w*s, 2]
+    inside = (np.abs(grid) <= 1.0).all(-1)
+    valid = inside.reshape(h, s, w, s).all(axis=(1, 3))
+    return grid, valid
+
+
+def luma_in_spike_view(luma: torch.Tensor, sensor: SensorModel, mode: str = "area") -> torch.Tensor:
+    """Linear luminance [..., H, W] of the co-located RGB view -> [..., h, w] at the spike
+    sensor: a rescale (Eq. 12), or through :attr:`SensorModel.warp` when the spike camera has
+    its own field of view (the mean of its sample points per spike pixel)."""
+    if sensor.warp is None:
+        return resample_to(luma, sensor.height, sensor.width, mode)
+    lead = luma.shape[:-2]
+    H, W = luma.shape[-2:]
+    grid = torch.as_tensor(sensor.warp, dtype=luma.dtype, device=luma.device)
+    x = luma.reshape(-1, 1, H, W)
+    pts = F.grid_sample(x, grid[None].expand(x.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros",
+                        align_corners=False)
+    s = grid.shape[0] // sensor.height
+    out = F.avg_pool2d(pts, s) if s > 1 else pts
+    return out.reshape(*lead, sensor.height, sensor.width)
+
+
 def sensor_light(rgb_srgb: torch.Tensor, sensor: SensorModel, *, mode: str = "area",
                  scale: torch.Tensor | float | None = None) -> torch.Tensor:
     """Rendered sRGB image(s) [..., H, W, 3] at the co-located view -> light per spike
     frame [..., h, w] at the spike resolution (Eq. 11-13)."""
-    y = resample_to(rgb_to_luma_linear(rgb_srgb), sensor.height, sensor.width, mode)
+    y = luma_in_spike_view(rgb_to_luma_linear(rgb_srgb), sensor, mode)
     s = sensor.scale if scale is None else scale
     light = y * s + sensor.dark_current
     g = sensor.gain_tensor(device=light.device, dtype=light.dtype)
@@ -228,14 +290,17 @@ class SpikeRenderer(torch.nn.Module):
 
 # ----------------------------------------------------------------------------- estimation
 
-def _luma_at_spike_res(rgb_srgb: np.ndarray, h: int, w: int, mode: str = "area") -> np.ndarray:
+def _luma_at_spike_res(rgb_srgb: np.ndarray, h: int, w: int, mode: str = "area",
+                       warp: np.ndarray | None = None) -> np.ndarray:
     t = torch.as_tensor(np.ascontiguousarray(rgb_srgb, dtype=np.float32))
-    return resample_to(rgb_to_luma_linear(t), h, w, mode).numpy()
+    probe = SensorModel(width=w, height=h, warp=warp)
+    return luma_in_spike_view(rgb_to_luma_linear(t), probe, mode).numpy()
 
 
 def fit_sensor(luma: np.ndarray, rates: np.ndarray, *, width: int, height: int,
                threshold: float = 1.0, rate_hz: float = 20000.0, gain_shrink: float = 0.5,
-               gain_clip: tuple[float, float] = (0.5, 2.0), per_pixel_gain: bool = True) -> SensorModel:
+               gain_clip: tuple[float, float] = (0.5, 2.0), per_pixel_gain: bool = True,
+               valid: np.ndarray | None = None) -> SensorModel:
     """Least-squares sensor fit from paired images.
 
     ``luma`` [F, h, w]: linear luminance of RGB frames at the spike resolution;
@@ -244,11 +309,14 @@ def fit_sensor(luma: np.ndarray, rates: np.ndarray, *, width: int, height: int,
     least squares over every unsaturated pixel of every frame (dark clamped to >= 0); then a
     per-pixel gain ``g = (sum x y + k) / (sum x^2 + k)`` with ``x = scale*luma + dark``,
     ``y = rate*theta`` and ``k = gain_shrink * mean_p(sum x^2)`` (ridge towards 1), clipped,
-    normalised to mean 1.
+    normalised to mean 1. ``valid`` [h, w]: the pixels to fit (the others keep gain 1).
     """
     x = np.asarray(luma, dtype=np.float64).reshape(len(luma), -1)
     y = np.asarray(rates, dtype=np.float64).reshape(len(rates), -1) * threshold
-    ok = (y < 0.95 * threshold).ravel()  # saturated pixels say nothing about the slope
+    ok = (y < 0.95 * threshold)  # saturated pixels say nothing about the slope
+    if valid is not None:
+        ok &= np.asarray(valid, bool).reshape(1, -1)
+    ok = ok.ravel()
     if ok.sum() < 2:
         ok[:] = True
     A = np.stack([x.ravel(), np.ones(x.size)], 1)[ok]
@@ -264,10 +332,12 @@ def fit_sensor(luma: np.ndarray, rates: np.ndarray, *, width: int, height: int,
         k = gain_shrink * max(float(sxx.mean()), 1e-12)
         g = ((xs * y).sum(0) + k) / (sxx + k)
         g = np.clip(g, *gain_clip)
-        g = g / g.mean()
+        inside = np.ones(g.shape, bool) if valid is None else np.asarray(valid, bool).ravel()
+        g = np.where(inside, g / g[inside].mean(), 1.0) if inside.any() else np.ones_like(g)
         gain = g.reshape(height, width).astype(np.float32)
     pred = np.minimum((a * x + d) * (gain.reshape(1, -1) if gain is not None else 1.0), threshold) / threshold
-    resid = float(np.abs(pred - y / threshold).mean())
+    err = np.abs(pred - y / threshold)
+    resid = float(err[:, np.asarray(valid, bool).ravel()].mean() if valid is not None and np.any(valid) else err.mean())
     return SensorModel(width=width, height=height, scale=a, dark_current=float(d),
                        threshold=threshold, gain=gain, rate_hz=rate_hz,
                        info={"fit_l1_rate": resid, "frames": int(len(x)), "method": "least_squares"})
@@ -280,14 +350,24 @@ def estimate_sensor(capture, stream, *, window_s: float | None = None, mode: str
     For each frame of the co-located camera inside the stream's time span, the observed
     rate is the spike count in ``[t - w/2, t + w/2]`` divided by the number of frames
     (``w`` defaults to 64 spike frames, short enough that the scene is nearly static).
-    Falls back to a uniform sensor (scale 1, no dark current) when there is no co-located
-    RGB frame inside the stream.
+    The RGB frame reaches the spike sensor through :func:`view_warp` when the two cameras'
+    fields of view differ (the pixels it does not cover are not fitted; the model keeps the
+    warp for the renders). Falls back to a uniform sensor (scale 1, no dark current) when
+    there is no co-located RGB frame inside the stream.
     """
     h, w = int(stream.height), int(stream.width)
     rate = float(stream.rate_hz)
     if window_s is None:
         window_s = 64.0 / rate
     cam = getattr(stream, "co_located_with", None)
+    warp = valid = None
+    cameras = getattr(capture, "cameras", {}) or {}
+    k_rgb = cameras[cam].intrinsics if cam in cameras else None
+    k_spike = getattr(stream, "intrinsics", None)
+    if k_rgb is not None and k_spike is not None:
+        mapped = view_warp(k_rgb, k_spike)
+        if mapped is not None:
+            warp, valid = mapped
     t_lo, t_hi = float(stream.t0), float(stream.t_end)
     lumas, rates = [], []
     for fr in getattr(capture, "frames", []):
@@ -300,9 +380,12 @@ def estimate_sensor(capture, stream, *, window_s: float | None = None, mode: str
             continue
         counts = np.asarray(stream.window_counts(a, b), dtype=np.float64)
         n_eff = i1 - i0
-        lumas.append(_luma_at_spike_res(fr.load_rgb(), h, w, mode))
+        lumas.append(_luma_at_spike_res(fr.load_rgb(), h, w, mode, warp))
         rates.append(counts / n_eff)
     if not lumas:
-        return SensorModel(width=w, height=h, rate_hz=rate, info={"method": "default"})
-    return fit_sensor(np.stack(lumas), np.stack(rates), width=w, height=h, rate_hz=rate, **kw)
-
+        return SensorModel(width=w, height=h, rate_hz=rate, info={"method": "default"}, warp=warp, valid=valid)
+    model = fit_sensor(np.stack(lumas), np.stack(rates), width=w, height=h, rate_hz=rate, valid=valid, **kw)
+    model.warp, model.valid = warp, valid
+    if valid is not None:
+        model.info["covered_fraction"] = round(float(valid.mean()), 4)
+    return model

@@ -362,13 +362,18 @@ def _spike_term(guid: SpikeGuidance):
             return None
         img = b["rgb"][0].clamp(0, 1)
         scale = max(guid.sensor.scale, 1e-6)
+        # spike pixels outside the rendered RGB view (a spike camera with its own field of view) say nothing
+        valid = guid.sensor.valid
+        mask = None if valid is None else torch.as_tensor(valid, dtype=img.dtype, device=img.device)
         if guid.cfg.spike.loss_mode == "if":
             spikes = guid.renderer.render_spikes(img, n)
             obs_spikes = torch.as_tensor(np.ascontiguousarray(frames), device=img.device)
+            if mask is not None:
+                spikes, obs_spikes = spikes * mask, obs_spikes * mask.to(obs_spikes.dtype)
             return cumulative_spike_loss(spikes, obs_spikes) / scale
         pred = guid.renderer.render_counts(img, n)
         obs = torch.as_tensor(np.ascontiguousarray(counts), device=img.device)
-        return spike_count_loss(pred, obs, n) / scale
+        return spike_count_loss(pred, obs, n, mask) / scale
     return fn
 
 
