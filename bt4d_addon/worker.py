@@ -190,7 +190,8 @@ def reconstruct_job(*, progress, cancel, capture_path: str, run_dir: str, preset
     samples=dict|None (``Scene4D.sample`` arrays), run_dir=str)."""
     summary = engine_bridge.train(capture_path, run_dir, preset=preset, seconds=seconds, rgb_only=rgb_only,
                                   resume=resume, device=None if device in (None, "auto") else device,
-                                  seed=seed, progress=progress, cancel=cancel, overrides=overrides)
+                                  seed=seed, progress=progress, cancel=cancel, overrides=overrides,
+                                  on_stage=lambda text: progress({"stage": text}))
     out = {"summary": summary, "metrics": None, "metrics_error": None, "samples": None, "run_dir": run_dir}
     if summary.get("status") != "finished":
         return out

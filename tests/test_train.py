@@ -784,3 +784,22 @@ def test_spike_guided_runs_use_their_own_time_smoothness():
         tr = fake_run(cfg, model=types.SimpleNamespace(deformation=field, use_deformation=True), guided=guided)
         _deform_reg(types.SimpleNamespace(run=tr))
     assert seen == [cfg.hexplane.time_smooth_weight, cfg.spike.time_smooth_weight] and seen[0] != seen[1]
+
+
+def test_preparation_stages_are_announced_before_the_first_step(tiny_capture, tmp_path):
+    """Issue 45 / 43: minutes can pass before the first step (kernels, stereo, the initial cloud);
+    each stage is said as it starts, all before the first step's progress."""
+    events = []
+    train(tiny_capture, tmp_path / "run", overrides={"iterations": 3, "init": "ply"}, seconds=30.0,
+          on_stage=lambda text: events.append(("stage", text)), progress=lambda d: events.append(("step", d["step"])))
+    stages = [text for kind, text in events if kind == "stage"]
+    assert stages[0].startswith("compiling kernels (first run only")
+    assert stages[1:] == ["loading the capture", "reading frames and stereo depth", "initial Gaussians from stereo",
+                          "timing a few steps for the budget"]
+    first_step = next(i for i, (kind, _) in enumerate(events) if kind == "step")
+    assert all(kind == "stage" for kind, _ in events[:first_step]) and first_step == len(stages)
+    # run.json keeps each stage's time and the peak memory so far (issue 43: time to a usable result)
+    prep = json.loads((tmp_path / "run" / "run.json").read_text())["preparation"]
+    assert [p["stage"] for p in prep] == stages
+    assert all(p["seconds"] >= 0 for p in prep) and all(p["peak_rss_mb"] > 50 for p in prep)
+    assert [p["peak_rss_mb"] for p in prep] == sorted(p["peak_rss_mb"] for p in prep)  # a peak only grows

@@ -31,7 +31,7 @@ def add_arguments(p) -> None:
                    help="arc swept around the scene, centred on the eval camera (360 = full circle; a stereo "
                         "capture sees the scene from the front only, so wide arcs show its unobserved back)")
     p.add_argument("--restart", action="store_true")
-    p.add_argument("--device", default=None)
+    p.add_argument("--device", default="auto", help="auto (default: CUDA when available), cpu, cuda, cuda:1")
     p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE")
 
 
@@ -72,7 +72,8 @@ def main(args) -> int:
     try:
         summary = train(capture, out, preset=args.preset, seconds=args.seconds, resume=not args.restart,
                         device=args.device, progress=progress, cancel=threading.Event(),
-                        overrides=parse_overrides(args.overrides))
+                        overrides=parse_overrides(args.overrides),
+                        on_stage=lambda text: print(f"{text}...", file=sys.stderr, flush=True))
         if bar is not None:
             bar.close()
         metrics = evaluate(out, capture)

@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from ..errors import CaptureError, RunError
 from ..train import train
+from ..train.config import DEFAULT_PRESET, PRESETS
 
 HELP = "train a 4D Gaussian scene on a capture folder"
 
@@ -55,11 +56,12 @@ def add_arguments(p) -> None:
     p.epilog = SKIP_HELP
     p.add_argument("capture", help="capture folder (transforms.json)")
     p.add_argument("--out", required=True, help="run directory (checkpoint, run.json, metrics)")
-    p.add_argument("--preset", default="fast", choices=["fast", "balanced", "quality"])
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS),
+                   help=f"{DEFAULT_PRESET} (default: what every published figure uses), " + ", ".join(PRESETS[1:]))
     p.add_argument("--seconds", type=float, default=None, help="wall-clock budget; the schedule is sized to fit")
     p.add_argument("--rgb-only", action="store_true", help="ignore spike streams")
     p.add_argument("--restart", action="store_true", help="start over instead of resuming RUN/checkpoint.pt")
-    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when available)")
+    p.add_argument("--device", default="auto", help="auto (default: CUDA when available), cpu, cuda, cuda:1")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
                    help="change a setting, e.g. --set schedule.iterations=500 (repeatable; see below)")
@@ -97,7 +99,8 @@ def main(args) -> int:
     try:
         summary = train(args.capture, args.out, preset=args.preset, seconds=args.seconds, rgb_only=args.rgb_only,
                         resume=not args.restart, device=args.device, seed=args.seed, progress=progress,
-                        cancel=cancel, overrides=overrides)
+                        cancel=cancel, overrides=overrides,
+                        on_stage=None if args.quiet else lambda text: print(f"{text}...", file=sys.stderr, flush=True))
     except (CaptureError, RunError, KeyError, ValueError) as exc:
         if bar is not None:
             bar.close()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import Sequence
@@ -57,8 +58,12 @@ def _config_key(cfg: TrainConfig, seed: int, rgb_only: bool, capture_path: str |
 
 def train(capture, out_dir, *, preset: str = "fast", seconds: float | None = None, rgb_only: bool = False,
           resume: bool = True, device=None, seed: int = 0, progress=None, cancel=None,
-          overrides: dict | None = None, loss_factories: Sequence[LossFactory] = LOSS_FACTORIES) -> dict:
+          overrides: dict | None = None, loss_factories: Sequence[LossFactory] = LOSS_FACTORIES,
+          on_stage=None) -> dict:
     """Train a 4D Gaussian scene on ``capture`` (path or Capture) into ``out_dir``.
+
+    ``on_stage(text)``: told which preparation stage runs before the first step (kernels, capture,
+    stereo, initial Gaussians, the budget's timing); ``progress(dict)`` then reports every step.
 
     Returns a summary dict (status finished | cancelled | failed, step, total_steps,
     train_seconds, num_gaussians, device, run_dir, final psnr/loss, init). See module doc.
@@ -72,19 +77,56 @@ def train(capture, out_dir, *, preset: str = "fast", seconds: float | None = Non
         # machine is idle and, with OpenMP spin-waits, costs 10x+ when the cores are shared.
         torch.set_num_threads(1)
     try:
+        clock = PreparationClock(on_stage)
+        clock.start("compiling kernels (first run only, about a minute; then cached)")
         warm_s = warm_up_runtime(dev)  # before the budget's clock starts
         return _train(capture, out_dir, preset=preset, seconds=seconds, rgb_only=rgb_only, resume=resume, dev=dev,
                       seed=seed, progress=progress, cancel=cancel, overrides=overrides,
-                      loss_factories=loss_factories, warmup_seconds=warm_s)
+                      loss_factories=loss_factories, warmup_seconds=warm_s, clock=clock)
     finally:
         torch.set_num_threads(threads)
 
 
+class PreparationClock:
+    """The preparation stages before the first step: each is announced as it starts (``on_stage``:
+    the CLI prints it, the Blender panel shows it; minutes can pass before the first step) and its
+    wall time and the process's peak memory so far are kept for run.json's ``preparation``."""
+
+    def __init__(self, on_stage=None):
+        self.on_stage = on_stage
+        self.records: list[dict] = []
+        self._open: tuple[str, float] | None = None
+
+    def start(self, text: str) -> None:
+        self.stop()
+        self._open = (text, time.perf_counter())
+        if self.on_stage is not None:
+            self.on_stage(text)
+
+    def stop(self) -> None:
+        if self._open is not None:
+            text, t0 = self._open
+            self.records.append({"stage": text, "seconds": round(time.perf_counter() - t0, 3),
+                                 "peak_rss_mb": _peak_rss_mb()})
+            self._open = None
+
+
+def _peak_rss_mb() -> float | None:
+    try:
+        import resource
+    except ImportError:  # not on this platform
+        return None
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(kb / (1024.0 * 1024.0) if sys.platform == "darwin" else kb / 1024.0, 1)
+
+
 def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, progress, cancel, overrides,
-           loss_factories, warmup_seconds: float = 0.0) -> dict:
+           loss_factories, warmup_seconds: float = 0.0, clock: PreparationClock | None = None) -> dict:
+    clock = clock if clock is not None else PreparationClock()
     t_start = time.perf_counter()
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    clock.start("loading the capture")
     cap = _load_capture(capture)
     cfg = get_preset(preset, overrides)
     if cfg.baseline.kind:  # two-stage baselines (paper Table 1): synthetic in-between training frames
@@ -93,6 +135,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     np.random.seed(seed % (2 ** 32))
     cap_path = capture_path(cap)
     key = _config_key(cfg, seed, rgb_only, cap_path)
+    clock.start("reading frames and stereo depth")
     trainer = Trainer(cap, cfg, device=dev, seed=seed, rgb_only=rgb_only, loss_factories=loss_factories)
 
     start_step = 0
@@ -110,8 +153,10 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             resumed = True
     budget_estimates = None
     if not resumed:
+        clock.start("initial Gaussians from stereo")
         trainer.init_model()
         if seconds is not None:
+            clock.start("timing a few steps for the budget")
             t_s, t_d = measure_step_seconds(trainer)
             elapsed = time.perf_counter() - t_start
             trainer.total_steps = steps_for_budget(seconds, t_s, t_d, cfg, reserve_s=elapsed + 1.0)
@@ -130,12 +175,14 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                                           "note": "early stopping off: no instant is seen by two train cameras, so "
                                                   "no train frame can be held back as the proxy"}
 
+    clock.stop()
     run_info = {
         "capture": cap_path, "preset": preset, "config": cfg.to_dict(), "overrides": overrides or {},
         "seed": seed, "rgb_only": rgb_only, "device": str(dev), "status": "running", "step": start_step,
         "total_steps": total, "train_seconds": prior_seconds, "created": _now(), "time_range": list(trainer.time_range),
         "init": trainer.init_info, "seconds_budget": seconds, "resumed_from": start_step if resumed else None,
-        "host": platform.node(), "warmup_seconds": round(warmup_seconds, 3), **skip_notes,
+        "host": platform.node(), "warmup_seconds": round(warmup_seconds, 3),
+        "preparation": clock.records, **skip_notes,
     }
     if budget_estimates is not None:
         run_info["budget_estimates"] = budget_estimates
