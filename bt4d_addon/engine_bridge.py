@@ -24,17 +24,20 @@ if _IN_EXTENSION:
     from ..engine.cameras import Intrinsics, View, look_at_c2w
     from ..engine.colour import srgb_to_linear
     from ..engine.errors import CaptureError
+    from ..engine.export.render_views import write_camera_file
     from ..engine.io.capture import load_capture
     from ..engine.io.images import read_image_size
 else:  # bt4d_addon imported from the checkout's root
     from engine.cameras import Intrinsics, View, look_at_c2w
     from engine.colour import srgb_to_linear
     from engine.errors import CaptureError
+    from engine.export.render_views import write_camera_file
     from engine.io.capture import load_capture
     from engine.io.images import read_image_size
 
 __all__ = ["CaptureError", "Intrinsics", "View", "evaluate", "export_ply_sequence", "load_capture", "load_result",
-           "load_run", "look_at_c2w", "read_image_size", "srgb_to_linear", "train", "write_renders"]
+           "load_run", "look_at_c2w", "read_image_size", "srgb_to_linear", "train", "write_camera_file",
+           "write_renders"]
 
 
 @functools.cache

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import bpy
 
-from . import bullet_time, export_ply, import_capture, load_result, reconstruct, render_path
+from . import bullet_time, export_path, export_ply, import_capture, load_result, reconstruct, render_path
 
-MODULES = (import_capture, reconstruct, load_result, export_ply, render_path, bullet_time)
+MODULES = (import_capture, reconstruct, load_result, export_ply, render_path, export_path, bullet_time)
 
 
 def _classes():

@@ -31,7 +31,7 @@ def test_train_writes_a_run(run_dir, demo_capture, capsys):
 
 
 @pytest.mark.slow
-def test_eval_prints_metrics_json(run_dir, capsys):
+def test_eval_prints_metrics_json(run_dir, demo_capture, capsys):
     assert main(["eval", str(run_dir)]) == 0
     out = json.loads(capsys.readouterr().out)
     for k in ("psnr", "ssim", "psnr_interframe", "ssim_interframe", "psnr_dynamic", "n_frames", "train_seconds",
@@ -46,6 +46,18 @@ def test_eval_prints_metrics_json(run_dir, capsys):
     assert 5 < out["psnr_static_instants"] < 60 and 5 < out["psnr_static_interframe"] < 60
     assert 0.0 <= out["static_colour_shift"] < 0.5 and 0.0 < out["static_fraction"] < 1.0
     assert json.loads((run_dir / "metrics.json").read_text())["psnr"] == out["psnr"]
+    # what was scored, to look at: ground truth | render for every frame (issue 45)
+    from engine.io.images import read_image_rgba
+
+    shots = sorted((run_dir / "eval_images").glob("*.png"))
+    assert len(shots) == 61
+    side = read_image_rgba(shots[0])
+    assert side.shape[:2] == (120, 320)
+    from engine.io.capture import load_capture
+
+    first = sorted(load_capture(demo_capture).eval_frames, key=lambda f: (f.camera, f.time))[0]
+    gt = first.load_rgb()
+    assert np.abs(side[:, :160, :3] - gt[..., :3]).max() < 1.5 / 255
 
 
 @pytest.mark.slow
@@ -84,6 +96,56 @@ def test_render_names_never_collide(run_dir, demo_capture, tmp_path, capsys):
     files = sorted(p.name for p in out.glob("*.png"))
     assert len(files) == n and f"wrote {n} PNG file(s)" in capsys.readouterr().out
     assert "rgb0_000000.png" in files and "rgb1_000000.png" in files
+
+
+@pytest.mark.slow
+def test_render_orbit_with_times_and_a_gif(run_dir, tmp_path, capsys):
+    """Issue 45: a bullet-time orbit from the command line, without Blender: N views on an arc
+    through the first train camera, capture time spread over them, progress, and a GIF."""
+    from PIL import Image
+
+    from engine.io.capture import load_capture
+    from engine.io.images import read_image_rgba
+    from engine.scene.model import load_run
+
+    out, gif = tmp_path / "orbit", tmp_path / "orbit.gif"
+    assert main(["render", str(run_dir), "--orbit", "40", "--views", "3", "--times", "0.0", "0.2", "--format", "png",
+                 "--out", str(out), "--video", str(gif), "--device", "auto"]) == 0
+    cap = capsys.readouterr()
+    assert "render 3/3 t=0.20000 s" in cap.err and "wrote 3 PNG file(s)" in cap.out
+    files = sorted(out.glob("*.png"))
+    assert [p.name for p in files] == ["000000.png", "000001.png", "000002.png"]
+    imgs = [read_image_rgba(p) for p in files]
+    assert imgs[0].shape == (120, 160, 4) and np.abs(imgs[2] - imgs[0]).max() > 0.05  # the camera moved
+    with Image.open(gif) as im:
+        assert im.n_frames == 3 and im.size == (160, 120)
+    # the middle view of a 40 degree arc through the first train camera is that camera itself
+    scene = load_run(run_dir)
+    capture = load_capture(scene.info["capture"])
+    first = sorted(capture.train_frames(), key=lambda f: (f.time, f.camera))[0]
+    ref = scene.render([capture.view(first)], time=0.1)[0]
+    mid = imgs[1]
+    assert np.abs(mid[..., 3] - ref["alpha"]).max() < 1e-2
+    # bad input is a message
+    assert main(["render", str(run_dir), "--orbit", "0", "--out", str(out)]) == 1
+    assert "--orbit must be" in capsys.readouterr().err
+    assert main(["render", str(run_dir), "--orbit", "90", "--out", str(out), "--video", str(tmp_path / "x.avi")]) == 1
+    assert "x.avi" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_render_path_file_is_camera_records(run_dir, demo_capture, tmp_path):
+    from engine.io.images import read_exr_channels
+
+    data = json.loads((demo_capture / "transforms.json").read_text())
+    (tmp_path / "path.json").write_text(json.dumps({"cameras": data["cameras"], "frames": data["eval_frames"][:2]}))
+    assert main(["render", str(run_dir), "--path", str(tmp_path / "path.json"), "--out", str(tmp_path / "a"),
+                 "--quiet"]) == 0
+    assert main(["render", str(run_dir), "--cameras", str(tmp_path / "path.json"), "--out", str(tmp_path / "b"),
+                 "--quiet"]) == 0
+    for name in ("000000.exr", "000001.exr"):
+        a, b = read_exr_channels(tmp_path / "a" / name), read_exr_channels(tmp_path / "b" / name)
+        assert np.array_equal(a["R"], b["R"])
 
 
 def test_output_names_disambiguate_or_refuse():

@@ -30,7 +30,7 @@ HELP = ("render every role:eval frame of the capture and print PSNR / SSIM / LPI
 def add_arguments(p) -> None:
     p.add_argument("run", help="run directory, or a compact cache (.bt4c; scored without writing files)")
     p.add_argument("capture", nargs="?", default=None, help="capture folder (default: the one recorded in run.json)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="auto", help="auto (default: CUDA when available), cpu, cuda, cuda:1")
     p.add_argument("--fill-holes", action="store_true",
                    help="score what a viewer of an opaque render sees: uncovered pixels filled from their "
                         "neighbourhood instead of the black background (issue 14)")
@@ -41,7 +41,9 @@ def add_arguments(p) -> None:
     p.add_argument("--per-camera", action="store_true",
                    help="novel-view table per eval camera (needs ground-truth depth in the capture)")
     p.add_argument("--images", type=Path, default=None,
-                   help="with --per-camera: folder for the eval strips and novel_view.json (default RUN/novel_view)")
+                   help="folder for the ground truth | render PNG of every scored frame (default RUN/eval_images); "
+                        "with --per-camera: for the eval strips and novel_view.json (default RUN/novel_view)")
+    p.add_argument("--no-images", action="store_true", help="write no images")
 
 
 def _angle_labels(cap) -> dict:
@@ -101,8 +103,10 @@ def main(args) -> int:
         scene = load_result(args.run, device=args.device)
         maybe_prune(scene, args.capture, args)
         # a cache is a single file: its scores are printed, nothing is written beside it
-        result = evaluate(args.run, args.capture, device=args.device, scene=scene,
-                          write=not isinstance(scene, CachedScene), fill_holes=args.fill_holes)
+        writes = not isinstance(scene, CachedScene)
+        images = None if args.no_images else (args.images or (Path(args.run) / "eval_images" if writes else None))
+        result = evaluate(args.run, args.capture, device=args.device, scene=scene, write=writes,
+                          fill_holes=args.fill_holes, images_dir=images)
     except (CaptureError, RunError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
     when.add_argument("--times", nargs=3, metavar=("T0", "T1", "N"), default=None,
                       help="N instants from T0 to T1 seconds (default: the capture's range, 31 instants)")
     p.add_argument("--out", required=True, help="output file (npz, compact) or folder (ply)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="auto", help="auto (default: CUDA when available), cpu, cuda, cuda:1")
 
 
 def export_times(time_range, fps=None, times=None):

@@ -21,9 +21,11 @@ returns one JSON-able dict:
   background. Off by default: a capture whose background really is black (the synthetic
   test captures) would be scored against invented colour.
 
-It writes RUN/eval_frames.csv (index, time, camera, interframe, psnr, ssim, psnr_dynamic,
-lpips, psnr_static) and RUN/metrics.json. ``scene=`` scores an already opened result instead (e.g. a
-compact cache, ``engine.export.cached``), whose path is then only a label.
+With ``images_dir`` it also writes one PNG per scored frame, ground truth | render side by side
+(``engine eval`` puts them in RUN/eval_images). It writes RUN/eval_frames.csv (index, time, camera,
+interframe, psnr, ssim, psnr_dynamic, lpips, psnr_static) and RUN/metrics.json. ``scene=`` scores an
+already opened result instead (e.g. a compact cache, ``engine.export.cached``), whose path is then only
+a label.
 """
 from __future__ import annotations
 
@@ -34,17 +36,24 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ..errors import RunError
 from ..io.capture import load_capture
 from ..io.checkpoint import read_run_json, write_json
 from ..io.fileio import atomic_write
-from ..scene.model import load_run
+from ..io.images import write_png
+from ..scene.model import default_device, load_run
 from .lpips import MIN_SIZE as LPIPS_MIN_SIZE
 from .lpips import lpips
 from .metrics import is_interframe, motion_masks, psnr, ssim, static_colour_bias, static_colour_shift, static_mask
 
 LPIPS_BATCH = 16  # eval frames per LPIPS forward pass: batching is ~15x faster than one by one on 2 cores
+
+
+def _np_image(pred) -> np.ndarray:
+    p = pred.detach().cpu().numpy() if isinstance(pred, torch.Tensor) else np.asarray(pred)
+    return p.astype(np.float32)[..., :3]
 
 
 def _mean(values) -> float | None:
@@ -57,9 +66,11 @@ def _round(x, nd=4):
 
 
 def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_threshold: float = 0.04,
-             mask_dilate: int = 2, scene=None, fill_holes: bool = False, static_tol: float = 0.03) -> dict:
+             mask_dilate: int = 2, scene=None, fill_holes: bool = False, static_tol: float = 0.03,
+             images_dir=None) -> dict:
 
     run_dir = Path(run_dir)
+    device = default_device(device)  # "auto" means the same here as for training
     scene = load_run(run_dir, device=device) if scene is None else scene
     info = scene.info
     if capture is None:
@@ -95,6 +106,10 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
                          "static_bias": static_colour_bias(pred, gt, still), "static_fraction": float(still.mean())})
             pairs.append((rows[-1], pred, gt))
     render_s = time.perf_counter() - t0
+    if images_dir is not None:  # what was scored, to look at: ground truth | render, one PNG per frame
+        for i, (row, pred, gt) in enumerate(pairs):
+            side = np.concatenate([np.asarray(gt, np.float32)[..., :3], _np_image(pred)], axis=1)
+            write_png(Path(images_dir) / f"{row['camera']}_{i:04d}_t{row['time']:.4f}.png", np.clip(side, 0, 1))
     _score_lpips(pairs, device)
     rows.sort(key=lambda r: (r["time"], r["camera"]))
     inter = [r for r in rows if r["interframe"]]

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import RunError
 from ..scene.gaussians import SH_C0
-from ..scene.model import Scene4D, load_run, view_tensors
+from ..scene.model import Scene4D, default_device, load_run, view_tensors
 from .compact import MAGIC, CompactFormatError, read_compact
 from .splats import render_splats, splats_at
 
@@ -42,7 +42,7 @@ class CachedScene:
         self.time_range = (float(self.cache.times[0]), float(self.cache.times[-1]))
         self.background = tuple(float(b) for b in meta.get("background", (0.0, 0.0, 0.0)))
         self.near_plane = float(meta.get("near_plane", 0.01))
-        self.device = device
+        self.device = default_device(device)
 
     @property
     def num_gaussians(self) -> int:

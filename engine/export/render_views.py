@@ -102,6 +102,15 @@ def views_to_records(views: list[View]) -> dict:
     return {"frames": frames}
 
 
+def write_camera_file(path, views: list[View]) -> Path:
+    """Write ``views`` as a camera JSON (:func:`views_to_records`) atomically: what
+    :func:`read_camera_file` and ``engine render --path`` read back, view for view."""
+    from ..io.fileio import atomic_write
+
+    text = json.dumps(views_to_records(views), indent=1).encode()
+    return atomic_write(Path(path), lambda fh: fh.write(text))
+
+
 # ---------------------------------------------------------------------------------- writing
 def _unpremultiply(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     a = alpha[..., None]
