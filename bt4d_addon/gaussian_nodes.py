@@ -52,7 +52,8 @@ VIEWPORT_SUBDIVISIONS = 1
 SIGMA_CUTOFF = 3.0
 ELLIPSOID_RADIUS = SIGMA_CUTOFF / 0.94
 
-# interface: (name, socket type, default, min, max, description)
+# interface: (name, socket type, default, min, max, description); the times show in seconds
+TIME_INPUTS = (CAPTURE_TIME, "Start Time", "End Time")
 _INPUTS = [
     (CAPTURE_TIME, "NodeSocketFloat", 0.0, None, None,
      "Capture time in seconds that the Gaussians show; hold it while the camera moves for bullet time"),
@@ -158,6 +159,8 @@ def ensure_node_group(material=None):
         s = iface.new_socket(name, in_out="INPUT", socket_type=stype)
         s.default_value = default
         s.description = desc
+        if name in TIME_INPUTS:
+            s.subtype = "TIME_ABSOLUTE"  # shown with its unit (s), as Blender shows times
         if lo is not None:
             s.min_value = lo
         if hi is not None:

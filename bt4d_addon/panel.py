@@ -60,6 +60,16 @@ class BT4D_PT_reconstruction(_BT4DPanel, Panel):
         draw_reconstruction(col, context)
 
 
+class BT4D_PT_reconstruction_advanced(_BT4DPanel, Panel):
+    bl_idname = "BT4D_PT_reconstruction_advanced"
+    bl_label = "Advanced"
+    bl_parent_id = "BT4D_PT_reconstruction"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        panel_run.draw_advanced(self.layout, context)
+
+
 class BT4D_PT_result(_BT4DPanel, Panel):
     bl_idname = "BT4D_PT_result"
     bl_label = "Result"
@@ -93,4 +103,5 @@ def draw_bullet_time(layout, context) -> None:
     panel_run.draw_bullet_time(layout, context)
 
 
-classes = (BT4D_PT_capture, BT4D_PT_reconstruction, BT4D_PT_result, BT4D_PT_bullet_time)
+classes = (BT4D_PT_capture, BT4D_PT_reconstruction, BT4D_PT_reconstruction_advanced, BT4D_PT_result,
+           BT4D_PT_bullet_time)

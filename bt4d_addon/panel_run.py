@@ -4,6 +4,7 @@ calls the ``draw_*`` functions below). They draw ``Scene.bt4d_run`` (``propertie
 from __future__ import annotations
 
 from . import gaussian_nodes as gn
+from . import preferences
 
 
 def _fmt_time(s: float) -> str:
@@ -15,16 +16,24 @@ def _fmt_time(s: float) -> str:
     return f"{s:.0f}s"
 
 
-def draw_reconstruction(layout, context) -> None:
-    scene = context.scene
-    r = scene.bt4d_run
-    s = scene.bt4d
-    col = layout.column()
-    col.prop(r, "resume")
-    running = r.status == "RUNNING"
-    adv = col.column(align=True)
-    adv.enabled = not running
-    adv.label(text="Advanced")
+def draw_torch_missing(layout) -> bool:
+    """A warning with a way to the preferences when the engine cannot import torch (Blender does
+    not ship it): without it Reconstruct can only fail. Returns whether it drew one."""
+    if preferences.torch_location() is not None:
+        return False
+    box = layout.box()
+    box.alert = True
+    box.label(text="torch is not installed: Reconstruct needs it", icon="ERROR")
+    op = box.operator("preferences.addon_show", text="Install Dependencies...", icon="PREFERENCES")
+    op.module = preferences.ADDON_PACKAGE
+    return True
+
+
+def draw_advanced(layout, context) -> None:
+    """The switches most runs leave alone (the collapsed Advanced sub-panel)."""
+    s = context.scene.bt4d
+    adv = layout.column(align=True)
+    adv.enabled = context.scene.bt4d_run.status != "RUNNING"
     adv.prop(s, "motion")
     adv.prop(s, "freeze_static")
     adv.prop(s, "close_cracks")
@@ -32,6 +41,16 @@ def draw_reconstruction(layout, context) -> None:
     fill.enabled = bool(s.close_cracks)
     fill.prop(s, "crack_fill")
     adv.prop(s, "early_stop")
+
+
+def draw_reconstruction(layout, context) -> None:
+    scene = context.scene
+    r = scene.bt4d_run
+    s = scene.bt4d
+    draw_torch_missing(layout)
+    col = layout.column()
+    col.prop(r, "resume")
+    running = r.status == "RUNNING"
     row = col.row(align=True)
     row.enabled = bool(s.capture_dir) and not running
     row.operator("bt4d.reconstruct", text="Reconstruct", icon="PLAY")
@@ -110,5 +129,6 @@ def draw_bullet_time(layout, context) -> None:
         col.operator("bt4d.cancel_render_path", text="Cancel", icon="CANCEL")
     else:
         col.operator("bt4d.render_path", text="Render Camera Path", icon="RENDER_ANIMATION")
+        col.operator("bt4d.export_camera_path", text="Export Camera Path...", icon="EXPORT")
         if r.render_message:
             col.label(text=r.render_message)

@@ -12,11 +12,13 @@ precedence) on register and whenever the setting changes:
 """
 from __future__ import annotations
 
+import collections
 import importlib
 import importlib.util
 import shlex
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import bpy
@@ -25,18 +27,25 @@ from bpy.types import AddonPreferences, Operator
 
 ADDON_PACKAGE = __package__.rpartition(".")[0]
 
-# What the engine needs beyond Blender's bundled numpy (kept in step with requirements.txt).
+# What the engine needs, pinned exactly as requirements.txt pins it (tests/test_addon_preferences.py
+# compares them). numpy is pinned too: under --target pip would otherwise put the newest numpy (2.x,
+# which bpy cannot load) beside torch.
 REQUIREMENTS = (
     "torch==2.13.0",
+    "numpy==1.26.4",
     "numba==0.68.1",
+    "llvmlite==0.50.0",
     "OpenEXR==3.5.3",
     "trimesh==5.2.0",
     "pytorch-msssim==1.0.0",
     "pillow==13.0.0",
     "plyfile==1.1.2",
     "zstandard==0.25.0",
+    "tqdm==4.70.1",
     "opencv-python-headless==4.11.0.86",  # stereo (engine.geometry.stereo); 4.11 keeps numpy < 2
 )
+# in requirements.txt for development only: Blender itself, the tests, the linter, the benchmarks' plots
+DEVELOPMENT_ONLY = ("bpy", "pytest", "ruff", "matplotlib")
 
 _added_paths: list[str] = []  # the sys.path entries this add-on appended
 
@@ -98,6 +107,50 @@ def pip_install_command(target: str, packages=REQUIREMENTS, extra_args: str = ""
             "--target", target, *shlex.split(extra_args), *packages]
 
 
+class PipRun:
+    """A pip process whose output is read as it comes (a thread drains the pipe, so a long torch
+    download never blocks on a full pipe); ``latest`` is its last line, ``cancel`` stops it."""
+
+    def __init__(self, cmd: list[str]):
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        self.lines: collections.deque[str] = collections.deque(maxlen=400)
+        self.cancelled = False
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            line = line.rstrip()
+            if line:
+                self.lines.append(line)
+        self.proc.stdout.close()
+
+    @property
+    def latest(self) -> str:
+        return self.lines[-1] if self.lines else ""
+
+    def poll(self) -> int | None:
+        """The exit code once pip has exited and its output is read, else None."""
+        code = self.proc.poll()
+        if code is None:
+            return None
+        self._reader.join(timeout=5.0)
+        return code
+
+    def cancel(self) -> None:
+        self.cancelled = True
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._reader.join(timeout=5.0)
+
+    def output(self) -> str:
+        return "\n".join(self.lines)
+
+
 def _on_path_changed(self, context):
     sync_sys_path(self.python_path)
 
@@ -107,11 +160,12 @@ class BT4D_AddonPreferences(AddonPreferences):
 
     python_path: StringProperty(
         name="Python Packages Path", subtype="DIR_PATH", update=_on_path_changed,
-        description="site-packages folder of an environment that has torch (same Python version as "
-                    "Blender); appended to sys.path")
+        description="The packages folder of a Python environment that has torch (same Python version as "
+                    "Blender); Blender then finds torch there")
     pip_args: StringProperty(
         name="Extra pip Arguments", default="",
-        description="Added to the pip command, e.g. --index-url https://download.pytorch.org/whl/cu128")
+        description="Added to the pip command. For a CUDA build of torch: --extra-index-url followed by "
+                    "the PyTorch wheel index of your CUDA version (the other packages still come from PyPI)")
     last_install_log: StringProperty(name="Last Install", default="")
 
     def draw(self, context):
@@ -144,7 +198,7 @@ class BT4D_OT_install_dependencies(Operator):
     target: StringProperty(name="Target", subtype="DIR_PATH", default="",
                            description="Install folder (default: the add-on's site-packages folder)")
 
-    _proc = None
+    _run: PipRun | None = None
     _timer = None
 
     def _command(self, context) -> list[str] | None:
@@ -182,18 +236,42 @@ class BT4D_OT_install_dependencies(Operator):
         cmd = self._command(context)
         if cmd is None:
             return {"CANCELLED"}
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self._run = PipRun(cmd)
         self._timer = context.window_manager.event_timer_add(0.5, window=context.window)
         context.window_manager.modal_handler_add(self)
-        self.report({"INFO"}, "Installing dependencies with pip...")
+        self.report({"INFO"}, "Installing dependencies with pip (Esc cancels)...")
         return {"RUNNING_MODAL"}
 
+    def _status(self, context, text: str | None) -> None:
+        prefs = get_prefs(context)
+        if prefs and text is not None:
+            prefs.last_install_log = text[:200]
+        workspace = getattr(context, "workspace", None)
+        if workspace is not None:
+            workspace.status_text_set(text)
+        for area in getattr(context.screen, "areas", []) if getattr(context, "screen", None) else []:
+            area.tag_redraw()
+
     def modal(self, context, event):
-        if event.type != "TIMER" or self._proc.poll() is None:
+        if event.type == "ESC":
+            self._run.cancel()
+            context.window_manager.event_timer_remove(self._timer)
+            self._status(context, None)
+            msg = "Install cancelled; the packages folder may hold a partial install (press the button again)"
+            prefs = get_prefs(context)
+            if prefs:
+                prefs.last_install_log = msg
+            self.report({"WARNING"}, msg)
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        code = self._run.poll()
+        if code is None:
+            self._status(context, f"pip: {self._run.latest}" if self._run.latest else "pip: starting...")
             return {"PASS_THROUGH"}
         context.window_manager.event_timer_remove(self._timer)
-        output = self._proc.stdout.read() if self._proc.stdout else ""
-        return self._finish(context, self._proc.returncode, output)
+        self._status(context, None)
+        return self._finish(context, code, self._run.output())
 
 
 classes = (BT4D_AddonPreferences, BT4D_OT_install_dependencies)

@@ -14,20 +14,20 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 from bpy.types import PropertyGroup
 
-PRESET_ITEMS = (
-    ("fast", "Fast", "Few iterations, small model: a first look in minutes"),
-    ("balanced", "Balanced", "The default trade-off between time and quality"),
-    ("quality", "Quality", "More iterations and Gaussians; best results, slowest"),
+PRESET_ITEMS = (  # the first is the default, as on the command line (tests/test_config.py checks it)
+    ("fast", "Fast", "1,000 steps: the demo in under a minute on a laptop CPU. The default, and what every "
+                     "published figure uses"),
+    ("balanced", "Balanced", "2,500 steps and more Gaussians: a few minutes more for finer detail"),
+    ("quality", "Quality", "3,000 steps, the most Gaussians and a finer motion grid: slowest"),
 )
 MOTION_ITEMS = (  # the engine setting motion.representation; the first is the engine's default
     ("trajectory", "Per-Gaussian Curves",
-     "Every Gaussian follows its own cubic Bezier curve through the RGB instants (E-NeMF): "
-     "fast objects stay sharp; the spike stream bends the curves between frames"),
-    ("hexplane", "HexPlane Field",
-     "A shared HexPlane deformation field with the spike fine branch (the paper's Eq. 6-10): "
-     "smoother, but fast objects can turn into ghosts"),
+     "Every Gaussian follows its own smooth path through the RGB frames: fast objects stay sharp; "
+     "the spike stream bends the paths between frames. The default"),
+    ("hexplane", "Shared Motion Field",
+     "One motion field shared by nearby Gaussians: smoother, but fast objects can turn into ghosts"),
     ("trajectory+hexplane", "Curves + Field",
-     "Per-Gaussian curves with a HexPlane field as a residual on top (slowest)"),
+     "Per-Gaussian paths with a shared motion field on top (slowest)"),
 )
 CRACK_FILL_ITEMS = (  # the engine setting losses.cover_grad; the first is the engine's default
     ("all", "Grow and Move",
@@ -63,27 +63,28 @@ class BT4D_SceneSettings(PropertyGroup):
     main_camera: StringProperty(name="Main Camera", description="Train camera that sets the scene resolution")
 
     # -- reconstruction settings (read by the training operator) -----------------------
-    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="balanced")
+    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default=PRESET_ITEMS[0][0])
     seconds: FloatProperty(
-        name="Time Budget", default=600.0, min=5.0, soft_max=7200.0, unit="TIME_ABSOLUTE",
-        description="Wall-clock training budget in seconds. A run plans at most twice the preset's step "
-                    "count (Balanced 1.5 times, Quality its own: more steps overfit the two views) and may "
-                    "finish early")
+        name="Time Budget", default=0.0, min=0.0, soft_max=7200.0, unit="TIME_ABSOLUTE",
+        description="How long training may take. 0 (the default): the preset's own number of steps, as "
+                    "on the command line. A budget sizes the run to fit it, at most twice the preset's steps "
+                    "(Balanced 1.5 times, Quality its own), and may finish early")
     output_dir: StringProperty(
         name="Output", subtype="DIR_PATH", default="//bt4d_runs/",
         description="Where runs (checkpoints, exports, renders) are written")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="auto")
     use_spikes: BoolProperty(
         name="Use Spikes", default=True,
-        description="Train the fine (spike-guided) deformation branch when the capture has a spike stream")
+        description="Use the capture's spike stream to shape the motion between RGB frames (off: the RGB "
+                    "frames alone)")
     # -- advanced: motion representation and skipping what the scene does not need ----------
     motion: EnumProperty(
         name="Motion", items=MOTION_ITEMS, default=MOTION_ITEMS[0][0],
         description="How the Gaussians move over time")
     freeze_static: BoolProperty(
         name="Freeze Static Gaussians", default=False,
-        description="Gaussians that do not move stop using the deformation field (CPOStream freezing): "
-                    "faster deformation steps on scenes with a static background")
+        description="Gaussians that do not move stop being animated: faster training on scenes with a "
+                    "static background")
     close_cracks: BoolProperty(
         name="Close Cracks at New Views", default=True,
         description="Keep what the cameras cover covered from viewpoints 10-20 degrees away; turn off for "
@@ -133,12 +134,24 @@ class BT4D_RunState(PropertyGroup):
     run_dir: StringProperty(name="Run", subtype="DIR_PATH", description="Folder of the last reconstruction")
     # metrics (engine.evaluate) ------------------------------------------------------------
     has_metrics: BoolProperty(default=False)
-    metric_psnr: FloatProperty(name="PSNR", precision=2)
-    metric_ssim: FloatProperty(name="SSIM", precision=4)
-    metric_lpips: FloatProperty(name="LPIPS", precision=4, default=-1.0,
-                                description="LPIPS-Alex on the held-out frames (lower is better; -1: not measured)")
-    metric_psnr_interframe: FloatProperty(name="PSNR between RGB frames", precision=2)
-    metric_psnr_dynamic: FloatProperty(name="PSNR dynamic regions", precision=2)
+    metric_psnr: FloatProperty(
+        name="PSNR", precision=2,
+        description="How closely the result matches the held-out camera's images, in dB. Higher is better: "
+                    "above 25 looks clean, below 20 is visibly wrong")
+    metric_ssim: FloatProperty(
+        name="SSIM", precision=4,
+        description="Structural similarity to the held-out images, 0 to 1. Higher is better: above 0.8 is good")
+    metric_lpips: FloatProperty(
+        name="LPIPS", precision=4, default=-1.0,
+        description="Perceptual difference from the held-out images. Lower is better: below 0.1 is good, above "
+                    "0.3 looks wrong (-1: not measured)")
+    metric_psnr_interframe: FloatProperty(
+        name="PSNR between RGB frames", precision=2,
+        description="PSNR at instants between the RGB frames, where only the spike stream saw the scene. Higher "
+                    "is better: within 1 dB of the overall PSNR is good")
+    metric_psnr_dynamic: FloatProperty(
+        name="PSNR dynamic regions", precision=2,
+        description="PSNR on the pixels that move: the hardest part. Higher is better: above 20 dB is good")
     metric_frames: IntProperty(name="Eval frames")
     train_seconds: FloatProperty(name="Train time", unit="TIME_ABSOLUTE")
     # path render ---------------------------------------------------------------------------

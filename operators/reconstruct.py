@@ -25,10 +25,13 @@ folder keeps its last checkpoint (``resume`` continues from it).
 
 Run folder: ``<scene.bt4d.output_dir>/<capture name>``; the default output folder
 ``//bt4d_runs/`` is next to the saved .blend, or in the system temp folder while the file
-is unsaved.
+is unsaved. A run never overwrites another (:func:`choose_run_dir`): Resume continues the run
+in that folder only when it was made with the same settings; otherwise, and whenever Resume
+is off and the folder holds a run, the run goes to ``<capture name>_2``, ``_3``, ...
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import tempfile
@@ -69,6 +72,33 @@ def resolve_run_dir(scene) -> str:
     else:
         base = Path(bpy.path.abspath(out))
     return str((base / capture_name(scene)).resolve())
+
+
+def _run_settings(run_dir: Path) -> dict | None:
+    """The settings a run folder's run.json records (None: no run there, or unreadable)."""
+    try:
+        info = json.loads((run_dir / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return {k: info.get(k) for k in ("capture", "preset", "overrides", "rgb_only", "seed")}
+
+
+def choose_run_dir(base: str, wanted: dict, resume: bool) -> str:
+    """The folder a new reconstruction writes to, never overwriting another run (issue 45):
+    ``base`` when it holds no run, or when ``resume`` is on and its run has the ``wanted``
+    settings (capture, preset, overrides, rgb_only, seed: what decides whether a checkpoint
+    can be continued); else the first of ``base_2``, ``base_3``, ... that holds no run or, with
+    ``resume``, that run."""
+    root = Path(base)
+    wanted = json.loads(json.dumps(wanted))  # the types run.json gives back (lists, not tuples)
+    for k in range(1, 10_000):
+        cand = root if k == 1 else root.with_name(f"{root.name}_{k}")
+        have = _run_settings(cand)
+        if have is None and not (cand / "checkpoint.pt").exists():
+            return str(cand)
+        if resume and have == wanted:
+            return str(cand)
+    raise RuntimeError(f"{root}: no free run folder")
 
 
 def advanced_overrides(settings) -> dict:
@@ -286,7 +316,6 @@ class BT4D_OT_reconstruct(Operator):
             self.report({"ERROR"}, f"No capture to reconstruct: {capture or 'import one first'} "
                                    "(needs transforms.json)")
             return {"CANCELLED"}
-        run_dir = resolve_run_dir(scene)
         resume = r.resume if self.use_scene_resume else self.resume
         seconds = float(self.seconds if self.seconds >= 0 else s.seconds)
         overrides = advanced_overrides(s)
@@ -294,6 +323,9 @@ class BT4D_OT_reconstruct(Operator):
             seconds = None
             overrides["schedule.iterations"] = int(self.iterations)
         overrides = overrides or None
+        wanted = {"capture": str(Path(capture).resolve()), "preset": s.preset, "overrides": overrides or {},
+                  "rgb_only": not s.use_spikes, "seed": 0}
+        run_dir = choose_run_dir(resolve_run_dir(scene), wanted, resume)
         job = worker.Job(worker.reconstruct_job, kind=KIND, capture_path=capture, run_dir=run_dir,
                          preset=s.preset, seconds=seconds if seconds and seconds > 0 else None,
                          rgb_only=not s.use_spikes, resume=resume, device=s.device, overrides=overrides,

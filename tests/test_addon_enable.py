@@ -126,7 +126,7 @@ def test_enable_and_disable_through_extension_repository(demo_capture, copy):
     assert res["op"], log
     assert res["panels"] == ["BT4D_PT_capture", "BT4D_PT_reconstruction", "BT4D_PT_result", "BT4D_PT_bullet_time"]
     assert res["prefs"] == "BT4D_AddonPreferences"
-    assert res["scene_prop"] == "balanced"
+    assert res["scene_prop"] == "fast"  # engine.train.config.DEFAULT_PRESET (the engine is not imported here)
     assert res["menu"]
     assert res["import"] == ["FINISHED"]
     assert res["cameras"] == ["eval0", "rgb0", "rgb1", "spike0"]

@@ -57,6 +57,46 @@ def test_pip_command_targets_the_given_folder(prefs_mod, tmp_path):
     assert any(r.startswith("torch==") for r in prefs_mod.REQUIREMENTS)
 
 
+def test_install_pins_are_requirements_txt_pins(prefs_mod):
+    """Issue 45, defect 5: the button installs what requirements.txt pins, numpy included."""
+    pinned = {}
+    for line in (Path(__file__).resolve().parents[1] / "requirements.txt").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            name, _, version = line.partition("==")
+            pinned[name.lower()] = version
+    ours = {r.split("==")[0].lower(): r.split("==")[1] for r in prefs_mod.REQUIREMENTS}
+    assert all("==" in r for r in prefs_mod.REQUIREMENTS)
+    runtime = {k: v for k, v in pinned.items() if k not in prefs_mod.DEVELOPMENT_ONLY}
+    assert ours == runtime
+    assert ours["numpy"].startswith("1.")
+
+
+def test_pip_output_is_read_while_it_runs_and_cancel_stops_it(prefs_mod):
+    """A long pip run cannot block on a full pipe, shows its latest line, and can be cancelled."""
+    import time
+    chatty = [sys.executable, "-c", "import sys\nfor i in range(4000): print('line', i, 'x' * 60)\n"
+              "print('done', flush=True)\nimport time; time.sleep(0.2)"]
+    run = prefs_mod.PipRun(chatty)  # ~280 kB: far more than a pipe holds
+    deadline = time.time() + 60
+    while run.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert run.poll() == 0 and run.latest == "done"
+    slow = prefs_mod.PipRun([sys.executable, "-c", "import time\nprint('started', flush=True)\ntime.sleep(60)"])
+    while not run.latest and time.time() < deadline:
+        time.sleep(0.05)
+    t0 = time.time()
+    while slow.latest != "started" and time.time() < deadline:
+        time.sleep(0.05)
+    slow.cancel()
+    assert slow.cancelled and slow.poll() is not None and time.time() - t0 < 30
+
+
+def test_manifest_declares_the_network_permission():
+    text = (Path(__file__).resolve().parents[1] / "blender_manifest.toml").read_text()
+    assert "network =" in text.split("[permissions]")[1]
+
+
 def test_extension_user_folder_is_available(prefs_mod):
     p = prefs_mod.user_site_packages()
     assert p and Path(p).name == "site-packages" and "bullettime4d" in p

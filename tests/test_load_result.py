@@ -63,6 +63,10 @@ def test_load_result_samples_and_capture_time(rt_scene, reconstructed):
     col = np.empty(N * K * 4, np.float32)
     mesh.attributes[attrs.COLOUR.name].data.foreach_get("color", col)
     np.testing.assert_allclose(col.reshape(K, N, 4)[2, :, :3], srgb_to_linear(g["colors"]), atol=1e-5)
+    # the times are shown with their unit (issue 45)
+    group = obj.modifiers[0].node_group
+    inputs = {i.name: i for i in group.interface.items_tree if getattr(i, "in_out", "") == "INPUT"}
+    assert all(inputs[n].subtype == "TIME_ABSOLUTE" for n in ("Capture Time", "Start Time", "End Time"))
     # the modifier shows sample 2 when Capture Time is times[2]
     gn.key_capture_time(obj, [(1, float(times[2])), (2, float(times[2]))])
     bpy.context.scene.frame_set(1)

@@ -214,9 +214,88 @@ def test_sidebar_draws_every_state(scene):
     calls.clear()
     pr.draw_reconstruction(Layout(), ctx)
     assert "progress" in calls and "operator" in calls
+    calls.clear()
+    pr.draw_advanced(Layout(), ctx)
+    assert calls.count("prop") == 5  # motion, freeze, cracks, crack fill, early stop: in the sub-panel
+    panel = roundtrip_util.addon_module("bt4d_addon.panel")
+    assert panel.BT4D_PT_reconstruction_advanced.bl_parent_id == "BT4D_PT_reconstruction"
+    assert "DEFAULT_CLOSED" in panel.BT4D_PT_reconstruction_advanced.bl_options
     r.has_metrics = True
     pr.draw_result(Layout(), ctx)
     pr.draw_bullet_time(Layout(), ctx)
+
+
+def test_sidebar_warns_when_torch_is_missing(scene, monkeypatch):
+    """Issue 45, defect 6: without torch the Reconstruction panel says so and opens the
+    preferences (where Install Dependencies is) instead of letting Reconstruct fail."""
+    pr = roundtrip_util.addon_module("bt4d_addon.panel_run")
+    prefs = roundtrip_util.addon_module("bt4d_addon.preferences")
+    drawn = []
+
+    class Layout:
+        def __getattr__(self, name):
+            def f(*a, **k):
+                drawn.append((name, a, k))
+                return Layout()
+            return f
+
+    pr.draw_reconstruction(Layout(), bpy.context)
+    assert not any(n == "operator" and a and a[0] == "preferences.addon_show" for n, a, _ in drawn)
+    monkeypatch.setattr(prefs, "torch_location", lambda: None)
+    drawn.clear()
+    pr.draw_reconstruction(Layout(), bpy.context)
+    labels = [k.get("text", "") for n, _, k in drawn if n == "label"]
+    assert any("torch is not installed" in t for t in labels)
+    assert any(n == "operator" and a and a[0] == "preferences.addon_show" for n, a, _ in drawn)
+    assert bpy.ops.preferences.addon_show.poll() in (True, False)  # the operator exists in this Blender
+
+
+def test_panel_and_command_line_start_from_the_same_defaults():
+    """Issue 45: one set of defaults. The panel's preset and budget are the command line's (the
+    preset's own step count, no budget), and --device means auto everywhere, as the panel."""
+    import argparse
+
+    from engine.cli import evaluate as cli_eval
+    from engine.cli import export as cli_export
+    from engine.cli import render as cli_render
+    from engine.cli import train as cli_train
+    from engine.train.config import DEFAULT_PRESET
+
+    props = roundtrip_util.addon_module("bt4d_addon.properties")
+    s = bpy.context.scene.bt4d
+    defaults = {name: s.bl_rna.properties[name].default for name in ("preset", "seconds", "device")}
+    assert defaults == {"preset": DEFAULT_PRESET, "seconds": 0.0, "device": "auto"}
+    assert props.PRESET_ITEMS[0][0] == DEFAULT_PRESET
+    for mod, argv in ((cli_train, ["cap", "--out", "r"]), (cli_eval, ["run"]), (cli_export, ["run", "--out", "o"]),
+                      (cli_render, ["run", "--out", "o", "--orbit", "30"])):
+        p = argparse.ArgumentParser()
+        mod.add_arguments(p)
+        args = p.parse_args(argv)
+        assert args.device == "auto", mod.__name__
+        if mod is cli_train:
+            assert args.preset == DEFAULT_PRESET and args.seconds is None
+
+
+def test_a_run_never_overwrites_another(tmp_path):
+    """Issue 45, defect 7: with Resume on, changed settings used to start over in the same folder
+    and overwrite the finished run. Now the same settings resume, others get their own folder."""
+    rec = roundtrip_util.addon_module("operators.reconstruct")
+    base = tmp_path / "runs" / "cap"
+    wanted = {"capture": "/c", "preset": "fast", "overrides": {}, "rgb_only": False, "seed": 0}
+    assert rec.choose_run_dir(str(base), wanted, True) == str(base)  # nothing there yet
+    base.mkdir(parents=True)
+    (base / "run.json").write_text(json.dumps(dict(wanted, status="finished", step=10)))
+    assert rec.choose_run_dir(str(base), wanted, True) == str(base)  # same settings: resume it
+    other = dict(wanted, rgb_only=True)
+    second = rec.choose_run_dir(str(base), other, True)
+    assert second == str(base.with_name("cap_2"))
+    assert rec.choose_run_dir(str(base), wanted, False) == second  # restart: a new folder too
+    Path(second).mkdir()
+    (Path(second) / "run.json").write_text(json.dumps(dict(other, status="finished")))
+    assert rec.choose_run_dir(str(base), other, True) == second  # and that one resumes in turn
+    assert rec.choose_run_dir(str(base), dict(wanted, preset="quality"), True) == str(base.with_name("cap_3"))
+    with_override = dict(wanted, overrides={"skip.early_stop": True})
+    assert rec.choose_run_dir(str(base), with_override, True) == str(base.with_name("cap_3"))
 
 
 def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, tmp_path, monkeypatch):
@@ -242,8 +321,12 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
     assert calls[-1]["overrides"] == {"schedule.iterations": 5, "skip.freeze_static": True, "skip.early_stop": True}
     s.freeze_static = False
+    assert bpy.ops.bt4d.reconstruct() == {"FINISHED"}  # the default: no budget, the preset's steps
+    assert calls[-1]["overrides"] == {"skip.early_stop": True} and calls[-1]["seconds"] is None
+    s.seconds = 60.0
     assert bpy.ops.bt4d.reconstruct() == {"FINISHED"}
-    assert calls[-1]["overrides"] == {"skip.early_stop": True} and calls[-1]["seconds"] == s.seconds
+    assert calls[-1]["seconds"] == 60.0
+    s.seconds = 0.0
     # its tooltip says what the engine does: held-back train frames, never the eval frames
     assert "never the eval frames" in s.bl_rna.properties["early_stop"].description
     # the time budget's tooltip says what the step cap does, per preset (engine.train.loop.budget.step_cap)

@@ -284,6 +284,9 @@ PRESET_CHANGES = {
                 "densify.max_gaussians": 40000, "hexplane.resolution": 32, "hexplane.mlp_width": 96},
 }
 PRESETS = tuple(PRESET_CHANGES)
+# where the command line and the Blender panel both start (bt4d_addon/properties.py lists it first):
+# the preset every published figure uses
+DEFAULT_PRESET = "fast"
 
 
 def get_preset(name: str = "fast", overrides: dict | None = None) -> TrainConfig:
