@@ -58,3 +58,11 @@ def test_the_check_would_catch_them():
     assert MACHINE_PATHS.search("see " + "/work" + "/coord/scenes/fast") and MACHINE_PATHS.search("--out /" + "tmp/x")
     assert not MACHINE_PATHS.search("engine/train/loop/run.py and a/tmp/b")
     assert DOC_PATH.findall("(docs/experiments/quiet-curves.md, x)") == ["docs/experiments/quiet-curves.md"]
+
+
+def test_licence_file_matches_the_manifest(repo_root):
+    """Issue 45: a LICENSE file with the licence the manifest declares."""
+    text = (repo_root / "LICENSE").read_text()
+    manifest = (repo_root / "blender_manifest.toml").read_text()
+    assert "SPDX:GPL-3.0-or-later" in manifest
+    assert "GNU GENERAL PUBLIC LICENSE" in text and "Version 3, 29 June 2007" in text
