@@ -92,6 +92,15 @@ def test_pip_output_is_read_while_it_runs_and_cancel_stops_it(prefs_mod):
     assert slow.cancelled and slow.poll() is not None and time.time() - t0 < 30
 
 
+def test_cuda_advice_is_extra_index_url(prefs_mod, prefs):
+    """Issue 45, defect 4: the pip command installs numba, OpenEXR, ... too, which a CUDA wheel index
+    does not carry: the advice is --extra-index-url (the index is added), never --index-url alone."""
+    tip = prefs.bl_rna.properties["pip_args"].description
+    assert "--extra-index-url" in tip and "--index-url" not in tip.replace("--extra-index-url", "")
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert "--extra-index-url" in readme and "--index-url" not in readme.replace("--extra-index-url", "")
+
+
 def test_manifest_declares_the_network_permission():
     text = (Path(__file__).resolve().parents[1] / "blender_manifest.toml").read_text()
     assert "network =" in text.split("[permissions]")[1]
