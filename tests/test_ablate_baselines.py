@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from engine.io.capture import load_capture
 from engine.spike.render import _luma_at_spike_res, estimate_sensor
@@ -83,3 +84,30 @@ def test_with_baseline_appends_frames_and_rejects_unknown(cap):
     assert set(KINDS) == {"repeat", "interp-linear", "interp-flow", "spike2img"}
     with pytest.raises(ValueError):
         baseline_frames(cap, "rife")
+
+
+def test_spike_images_reach_the_rgb_view_through_the_spike_cameras_lens():
+    """The spike2img baseline with a spike camera of its own shape (a Vidar sensor is 400x250): its
+    image is seen from the RGB camera through both lenses, not stretched over the RGB frame; RGB
+    pixels outside the spike image are marked (the nearer RGB frame fills them)."""
+    from engine.cameras import Intrinsics
+    from engine.train.frames.baselines import spike_image_in_rgb_view
+
+    def radiance(x, y):
+        return 0.45 + 0.3 * np.sin(7 * x + 1.0) * np.cos(5 * y)
+
+    def image(k):
+        xx, yy = np.meshgrid((np.arange(k.width) + 0.5 - k.cx) / k.fx, (np.arange(k.height) + 0.5 - k.cy) / k.fy)
+        return radiance(xx, yy).astype(np.float32)
+
+    k_rgb = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
+    same, covered = spike_image_in_rgb_view(image(k_rgb.scaled(80, 60)), k_rgb.scaled(80, 60), k_rgb, (120, 160))
+    assert covered.all() and np.abs(same - image(k_rgb)).mean() < 0.01
+    k_spike = Intrinsics(100, 62, 100.0, 100.0, 50.0, 31.0)  # 16:10, narrower than the RGB view
+    seen, covered = spike_image_in_rgb_view(image(k_spike), k_spike, k_rgb, (120, 160))
+    assert 0.5 < covered.mean() < 1.0 and not covered[0, 0] and covered[60, 80]
+    truth = image(k_rgb)
+    stretched = torch.nn.functional.interpolate(torch.as_tensor(image(k_spike))[None, None], size=(120, 160),
+                                                mode="bilinear", align_corners=False)[0, 0].numpy()
+    err, err_stretched = np.abs(seen - truth)[covered].mean(), np.abs(stretched - truth)[covered].mean()
+    assert err < 0.01 and err_stretched > 5 * err, (err, err_stretched)

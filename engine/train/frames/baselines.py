@@ -31,7 +31,7 @@ import torch
 
 from ...cameras import View
 from ...colour import linear_to_srgb, luminance, srgb_to_linear
-from ...spike.render import estimate_sensor
+from ...spike.render import estimate_sensor, same_field_of_view
 from ...spike.simulate import tfi, tfp
 from .interpolation import flow_interpolate
 
@@ -127,6 +127,25 @@ def _upsample(img: np.ndarray, h: int, w: int) -> np.ndarray:
     return torch.nn.functional.interpolate(t, size=(h, w), mode="bilinear", align_corners=False)[0, 0].numpy()
 
 
+def spike_image_in_rgb_view(gray: np.ndarray, k_spike, k_rgb, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A spike-camera image [h, w] seen from the co-located RGB camera ``k_rgb``: (image [H, W],
+    covered bool [H, W]). The same field of view: a bilinear upsample, all covered; a spike camera
+    with its own lens (``engine.spike.render.view_warp``): each RGB pixel's ray through the spike
+    intrinsics, the pixels outside the spike image not covered. ``size``: (H, W) of the RGB image."""
+    H, W = size
+    if k_spike is None or k_rgb is None or same_field_of_view(k_rgb, k_spike):
+        return _upsample(gray, H, W), np.ones((H, W), bool)
+    x = (np.arange(W) + 0.5 - k_rgb.cx) / k_rgb.fx
+    y = (np.arange(H) + 0.5 - k_rgb.cy) / k_rgb.fy
+    gx = (k_spike.fx * x + k_spike.cx) / k_spike.width * 2.0 - 1.0
+    gy = (k_spike.fy * y + k_spike.cy) / k_spike.height * 2.0 - 1.0
+    grid = torch.as_tensor(np.stack(np.meshgrid(gx, gy), -1), dtype=torch.float32)[None]
+    src = torch.as_tensor(gray, dtype=torch.float32)[None, None]
+    out = torch.nn.functional.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    covered = (grid[0].abs() <= 1.0).all(-1).numpy()
+    return out[0, 0].numpy(), covered
+
+
 def _colourise(gray_lin: np.ndarray, ref_srgb: np.ndarray, colour: str) -> np.ndarray:
     ref_lin = srgb_to_linear(ref_srgb.astype(np.float32))
     if colour == "reinhard":
@@ -203,9 +222,12 @@ def baseline_frames(capture, kind: str, *, per_interval: int | None = None, came
                     if not (stream.t0 <= t < stream.t_end):
                         continue
                     gray = spike_to_gray(stream, t, sens, method=spike_method, window=window)
-                    h, w = a_img.shape[:2]
                     ref = a_img if eps <= 0.5 else b_img
-                    img = _colourise(_upsample(gray, h, w), ref, colour)
+                    seen, covered = spike_image_in_rgb_view(gray, getattr(stream, "intrinsics", None), fa.intrinsics,
+                                                            ref.shape[:2])
+                    # where the spike camera does not see, the nearer RGB frame's own luminance
+                    seen = np.where(covered, seen, luminance(srgb_to_linear(ref.astype(np.float32))))
+                    img = _colourise(seen, ref, colour)
                 out.append(SyntheticFrame(np.ascontiguousarray(img, dtype=np.float32), cam, float(t),
                                           np.array(fa.c2w),
                                           fa.intrinsics, "train", None, {"synthetic": kind}, bool(knots)))
