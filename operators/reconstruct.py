@@ -329,7 +329,8 @@ class BT4D_OT_reconstruct(Operator):
         job = worker.Job(worker.reconstruct_job, kind=KIND, capture_path=capture, run_dir=run_dir,
                          preset=s.preset, seconds=seconds if seconds and seconds > 0 else None,
                          rgb_only=not s.use_spikes, resume=resume, device=s.device, overrides=overrides,
-                         evaluate=self.evaluate, bring_back=self.bring_back, num_samples=r.num_samples)
+                         evaluate=self.evaluate, bring_back=self.bring_back, num_samples=r.num_samples,
+                         seed=wanted["seed"])  # the seed the run folder was chosen for
         r.status, r.stage, r.message, r.run_dir = "RUNNING", "starting", "", run_dir
         r.progress, r.step, r.total_steps, r.loss, r.psnr, r.eta_s = 0.0, 0, 0, 0.0, 0.0, 0.0
         r.has_metrics = False

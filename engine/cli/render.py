@@ -24,7 +24,8 @@ import numpy as np
 
 from ..errors import CaptureError, RunError
 from ..export.cached import load_result
-from ..export.render_views import orbit_views, read_camera_file, write_renders
+from ..export.render_views import orbit_views, output_names, read_camera_file, write_renders
+from ..io.capture import load_capture
 
 HELP = "render a run along cameras, a camera path or a bullet-time orbit (EXR linear RGBA+Z or PNG sRGB)"
 
@@ -51,8 +52,6 @@ def add_arguments(p) -> None:
 
 def _first_train_view(scene, run):
     """The capture's first train camera as a View (its intrinsics and pose), or RunError."""
-    from ..io.capture import load_capture
-
     cap_path = scene.info.get("capture")
     if not cap_path:
         raise RunError(Path(run), "the result records no capture: an orbit needs its cameras (use --cameras)")
@@ -144,12 +143,7 @@ def main(args) -> int:
         scene = load_result(args.run, device=args.device)
         views = _views(args, scene)
         paths = []
-        for i, v in enumerate(views):
-            if not v.name:
-                v.name = f"{i:06d}"
         names = [f"{i:06d}" for i in range(len(views))] if args.orbit is not None else None
-        from ..export.render_views import output_names
-
         stems = output_names(views, names)  # refused before anything renders
         for i, (v, stem) in enumerate(zip(views, stems)):
             paths += write_renders(scene, [v], args.out, args.format, names=[stem])

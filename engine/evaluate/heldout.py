@@ -36,7 +36,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..errors import RunError
 from ..io.capture import load_capture
@@ -49,11 +48,6 @@ from .lpips import lpips
 from .metrics import is_interframe, motion_masks, psnr, ssim, static_colour_bias, static_colour_shift, static_mask
 
 LPIPS_BATCH = 16  # eval frames per LPIPS forward pass: batching is ~15x faster than one by one on 2 cores
-
-
-def _np_image(pred) -> np.ndarray:
-    p = pred.detach().cpu().numpy() if isinstance(pred, torch.Tensor) else np.asarray(pred)
-    return p.astype(np.float32)[..., :3]
 
 
 def _mean(values) -> float | None:
@@ -108,7 +102,7 @@ def evaluate(run_dir, capture=None, *, device="cpu", write: bool = True, mask_th
     render_s = time.perf_counter() - t0
     if images_dir is not None:  # what was scored, to look at: ground truth | render, one PNG per frame
         for i, (row, pred, gt) in enumerate(pairs):
-            side = np.concatenate([np.asarray(gt, np.float32)[..., :3], _np_image(pred)], axis=1)
+            side = np.concatenate([np.asarray(gt, np.float32)[..., :3], np.asarray(pred, np.float32)[..., :3]], axis=1)
             write_png(Path(images_dir) / f"{row['camera']}_{i:04d}_t{row['time']:.4f}.png", np.clip(side, 0, 1))
     _score_lpips(pairs, device)
     rows.sort(key=lambda r: (r["time"], r["camera"]))

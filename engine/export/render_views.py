@@ -29,6 +29,7 @@ import numpy as np
 from ..cameras import Intrinsics, View, look_at_c2w
 from ..colour import srgb_to_linear
 from ..errors import CaptureError
+from ..io.fileio import atomic_write
 from ..io.images import write_exr, write_png
 from ..io.records import parse_intrinsics
 
@@ -105,8 +106,6 @@ def views_to_records(views: list[View]) -> dict:
 def write_camera_file(path, views: list[View]) -> Path:
     """Write ``views`` as a camera JSON (:func:`views_to_records`) atomically: what
     :func:`read_camera_file` and ``engine render --path`` read back, view for view."""
-    from ..io.fileio import atomic_write
-
     text = json.dumps(views_to_records(views), indent=1).encode()
     return atomic_write(Path(path), lambda fh: fh.write(text))
 

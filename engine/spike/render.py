@@ -50,6 +50,7 @@ __all__ = [
     "SensorModel", "SpikeRenderer", "rgb_to_luma_linear", "resample_to", "sensor_light",
     "expected_counts", "integrate_and_fire", "spike_count_loss", "cumulative_spike_loss",
     "estimate_sensor", "heaviside_surrogate", "view_warp", "same_field_of_view", "luma_in_spike_view",
+    "pixel_grid_between",
 ]
 
 
@@ -123,52 +124,55 @@ def same_field_of_view(k_rgb, k_spike, rel_tol: float = 1e-3) -> bool:
     return bool(np.all(np.abs(a - b) <= rel_tol * np.maximum(np.abs(a), 1e-9)))
 
 
+def pixel_grid_between(k_src, k_dst, supersample: int = 1) -> np.ndarray:
+    """float32 [h*s, w*s, 2]: where the ``s x s`` sub-pixel centres of every pixel of camera
+    ``k_src`` land in the image of the co-located camera ``k_dst`` (a pure change of intrinsics:
+    through ``k_src`` to a ray, through ``k_dst`` to a pixel), in ``grid_sample`` coordinates
+    (align_corners False; outside [-1, 1]: outside ``k_dst``'s image)."""
+    s = max(1, int(supersample))
+    x = ((np.arange(k_src.width * s) + 0.5) / s - k_src.cx) / k_src.fx
+    y = ((np.arange(k_src.height * s) + 0.5) / s - k_src.cy) / k_src.fy
+    gx = (k_dst.fx * x + k_dst.cx) / k_dst.width * 2.0 - 1.0
+    gy = (k_dst.fy * y + k_dst.cy) / k_dst.height * 2.0 - 1.0
+    return np.stack(np.meshgrid(gx, gy), -1).astype(np.float32)
+
+
 def view_warp(k_rgb, k_spike, supersample: int = WARP_SUPERSAMPLE) -> tuple[np.ndarray, np.ndarray] | None:
     """None when the spike camera shares the co-located RGB camera's field of view; else
-    (points float32 [h*s, w*s, 2], valid bool [h, w]): ``s x s`` points per spike pixel, through
-    the spike intrinsics to a ray and through the RGB intrinsics to the RGB image, in
-    ``grid_sample`` coordinates (align_corners False); ``valid``: every point of that pixel
-    lands inside the RGB image."""
+    (points float32 [h*s, w*s, 2], valid bool [h, w]): ``s x s`` points per spike pixel in the RGB
+    image (:func:`pixel_grid_between`); ``valid``: every point of that pixel lands inside it."""
     if same_field_of_view(k_rgb, k_spike):
         return None
     s = max(1, int(supersample))
-    w, h = int(k_spike.width), int(k_spike.height)
-    u = (np.arange(w * s) + 0.5) / s  # sub-pixel centres, spike pixel units
-    v = (np.arange(h * s) + 0.5) / s
-    x = (u - k_spike.cx) / k_spike.fx
-    y = (v - k_spike.cy) / k_spike.fy
-    ur = k_rgb.fx * x + k_rgb.cx
-    vr = k_rgb.fy * y + k_rgb.cy
-    gx = ur / k_rgb.width * 2.0 - 1.0
-    gy = vr / k_rgb.height * 2.0 - 1.0
-    grid = np.stack(np.meshgrid(gx, gy), -1).astype(np.float32)  # [h*s, w*s, 2]
+    grid = pixel_grid_between(k_spike, k_rgb, s)
     inside = (np.abs(grid) <= 1.0).all(-1)
-    valid = inside.reshape(h, s, w, s).all(axis=(1, 3))
+    valid = inside.reshape(int(k_spike.height), s, int(k_spike.width), s).all(axis=(1, 3))
     return grid, valid
 
 
-def luma_in_spike_view(luma: torch.Tensor, sensor: SensorModel, mode: str = "area") -> torch.Tensor:
-    """Linear luminance [..., H, W] of the co-located RGB view -> [..., h, w] at the spike
-    sensor: a rescale (Eq. 12), or through :attr:`SensorModel.warp` when the spike camera has
+def luma_in_spike_view(luma: torch.Tensor, height: int, width: int, warp: np.ndarray | None = None,
+                       mode: str = "area") -> torch.Tensor:
+    """Linear luminance [..., H, W] of the co-located RGB view -> [..., height, width] at the spike
+    sensor: a rescale (Eq. 12), or through ``warp`` (:func:`view_warp`) when the spike camera has
     its own field of view (the mean of its sample points per spike pixel)."""
-    if sensor.warp is None:
-        return resample_to(luma, sensor.height, sensor.width, mode)
+    if warp is None:
+        return resample_to(luma, height, width, mode)
     lead = luma.shape[:-2]
     H, W = luma.shape[-2:]
-    grid = torch.as_tensor(sensor.warp, dtype=luma.dtype, device=luma.device)
+    grid = torch.as_tensor(warp, dtype=luma.dtype, device=luma.device)
     x = luma.reshape(-1, 1, H, W)
     pts = F.grid_sample(x, grid[None].expand(x.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros",
                         align_corners=False)
-    s = grid.shape[0] // sensor.height
+    s = grid.shape[0] // height
     out = F.avg_pool2d(pts, s) if s > 1 else pts
-    return out.reshape(*lead, sensor.height, sensor.width)
+    return out.reshape(*lead, height, width)
 
 
 def sensor_light(rgb_srgb: torch.Tensor, sensor: SensorModel, *, mode: str = "area",
                  scale: torch.Tensor | float | None = None) -> torch.Tensor:
     """Rendered sRGB image(s) [..., H, W, 3] at the co-located view -> light per spike
     frame [..., h, w] at the spike resolution (Eq. 11-13)."""
-    y = luma_in_spike_view(rgb_to_luma_linear(rgb_srgb), sensor, mode)
+    y = luma_in_spike_view(rgb_to_luma_linear(rgb_srgb), sensor.height, sensor.width, sensor.warp, mode)
     s = sensor.scale if scale is None else scale
     light = y * s + sensor.dark_current
     g = sensor.gain_tensor(device=light.device, dtype=light.dtype)
@@ -293,8 +297,7 @@ class SpikeRenderer(torch.nn.Module):
 def _luma_at_spike_res(rgb_srgb: np.ndarray, h: int, w: int, mode: str = "area",
                        warp: np.ndarray | None = None) -> np.ndarray:
     t = torch.as_tensor(np.ascontiguousarray(rgb_srgb, dtype=np.float32))
-    probe = SensorModel(width=w, height=h, warp=warp)
-    return luma_in_spike_view(rgb_to_luma_linear(t), probe, mode).numpy()
+    return luma_in_spike_view(rgb_to_luma_linear(t), h, w, warp, mode).numpy()
 
 
 def fit_sensor(luma: np.ndarray, rates: np.ndarray, *, width: int, height: int,
@@ -313,10 +316,8 @@ def fit_sensor(luma: np.ndarray, rates: np.ndarray, *, width: int, height: int,
     """
     x = np.asarray(luma, dtype=np.float64).reshape(len(luma), -1)
     y = np.asarray(rates, dtype=np.float64).reshape(len(rates), -1) * threshold
-    ok = (y < 0.95 * threshold)  # saturated pixels say nothing about the slope
-    if valid is not None:
-        ok &= np.asarray(valid, bool).reshape(1, -1)
-    ok = ok.ravel()
+    inside = np.ones(x.shape[1], bool) if valid is None else np.asarray(valid, bool).ravel()
+    ok = ((y < 0.95 * threshold) & inside).ravel()  # saturated pixels say nothing about the slope
     if ok.sum() < 2:
         ok[:] = True
     A = np.stack([x.ravel(), np.ones(x.size)], 1)[ok]
@@ -332,12 +333,11 @@ def fit_sensor(luma: np.ndarray, rates: np.ndarray, *, width: int, height: int,
         k = gain_shrink * max(float(sxx.mean()), 1e-12)
         g = ((xs * y).sum(0) + k) / (sxx + k)
         g = np.clip(g, *gain_clip)
-        inside = np.ones(g.shape, bool) if valid is None else np.asarray(valid, bool).ravel()
         g = np.where(inside, g / g[inside].mean(), 1.0) if inside.any() else np.ones_like(g)
         gain = g.reshape(height, width).astype(np.float32)
     pred = np.minimum((a * x + d) * (gain.reshape(1, -1) if gain is not None else 1.0), threshold) / threshold
     err = np.abs(pred - y / threshold)
-    resid = float(err[:, np.asarray(valid, bool).ravel()].mean() if valid is not None and np.any(valid) else err.mean())
+    resid = float(err[:, inside].mean() if inside.any() else err.mean())
     return SensorModel(width=width, height=height, scale=a, dark_current=float(d),
                        threshold=threshold, gain=gain, rate_hz=rate_hz,
                        info={"fit_l1_rate": resid, "frames": int(len(x)), "method": "least_squares"})

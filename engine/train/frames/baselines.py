@@ -31,7 +31,7 @@ import torch
 
 from ...cameras import View
 from ...colour import linear_to_srgb, luminance, srgb_to_linear
-from ...spike.render import estimate_sensor, same_field_of_view
+from ...spike.render import estimate_sensor, pixel_grid_between, same_field_of_view
 from ...spike.simulate import tfi, tfp
 from .interpolation import flow_interpolate
 
@@ -135,11 +135,7 @@ def spike_image_in_rgb_view(gray: np.ndarray, k_spike, k_rgb, size: tuple[int, i
     H, W = size
     if k_spike is None or k_rgb is None or same_field_of_view(k_rgb, k_spike):
         return _upsample(gray, H, W), np.ones((H, W), bool)
-    x = (np.arange(W) + 0.5 - k_rgb.cx) / k_rgb.fx
-    y = (np.arange(H) + 0.5 - k_rgb.cy) / k_rgb.fy
-    gx = (k_spike.fx * x + k_spike.cx) / k_spike.width * 2.0 - 1.0
-    gy = (k_spike.fy * y + k_spike.cy) / k_spike.height * 2.0 - 1.0
-    grid = torch.as_tensor(np.stack(np.meshgrid(gx, gy), -1), dtype=torch.float32)[None]
+    grid = torch.as_tensor(pixel_grid_between(k_rgb, k_spike))[None]
     src = torch.as_tensor(gray, dtype=torch.float32)[None, None]
     out = torch.nn.functional.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
     covered = (grid[0].abs() <= 1.0).all(-1).numpy()
