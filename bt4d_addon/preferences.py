@@ -44,8 +44,9 @@ REQUIREMENTS = (
     "tqdm==4.70.1",
     "opencv-python-headless==4.11.0.86",  # stereo (engine.geometry.stereo); 4.11 keeps numpy < 2
 )
-# in requirements.txt for development only: Blender itself, the tests, the linter, the benchmarks' plots
-DEVELOPMENT_ONLY = ("bpy", "pytest", "ruff", "matplotlib")
+# in requirements.txt but not for the add-on: Blender itself, the tests, the linter, the benchmarks' plots, and
+# Ray (optional: engine batch and sharded renders on a cluster)
+DEVELOPMENT_ONLY = ("bpy", "pytest", "ruff", "matplotlib", "ray")
 
 _added_paths: list[str] = []  # the sys.path entries this add-on appended
 

@@ -19,6 +19,7 @@ COMMANDS = {
     "export": "export",
     "demo": "demo",
     "spikes": "spikes",
+    "batch": "batch",
 }
 
 

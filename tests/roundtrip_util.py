@@ -67,6 +67,8 @@ def reconstructed_run(demo_capture, tmp_root) -> dict:
     from pathlib import Path
 
     results = [o for o in scene.objects if o.get("bt4d_result")]
+    after = tmp_root / "after_reconstruct.blend"  # the scene as Reconstruct left it (render-farm test)
+    bpy.ops.wm.save_as_mainfile(filepath=str(after), copy=True)
     info = {
         "op_result": res, "run_dir": r.run_dir, "status": r.status, "message": r.message,
         "step": r.step, "total_steps": r.total_steps, "has_metrics": r.has_metrics, "metric_psnr": r.metric_psnr,
@@ -75,6 +77,7 @@ def reconstructed_run(demo_capture, tmp_root) -> dict:
         "num_gaussians_attr": int(results[0].data["bt4d_num_gaussians"]) if results else 0,
         "capture": Path(demo_capture), "fingerprint_before": before,
         "expected_run_dir": str((tmp_root / "runs" / scene.bt4d.capture_name).resolve()),
+        "blend_after_reconstruct": after,
     }
     _RUN["info"] = info
     return info

@@ -23,6 +23,7 @@ COMMANDS = {
     "import-graph": "import_graph",
     "compact-steps": "compact_steps",
     "gpu-check": "gpu_check",
+    "bench-cluster": "bench_cluster",
 }
 
 # diagnostics with their own argument parser: ``main(argv)`` gets the arguments after the command

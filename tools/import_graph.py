@@ -12,7 +12,7 @@ including the lazy ones inside functions) and fails when
 Layers, lowest first (docs/architecture.md explains each)::
 
     foundations (engine.errors, engine.cameras, engine.colour) < io < raster < spike
-    < scene < geometry < evaluate < export < train < cli
+    < scene < geometry < evaluate < export < train < cluster < cli
 
 and inside ``engine.train`` the same rule over its parts::
 
@@ -27,7 +27,8 @@ from pathlib import Path
 
 HELP = "check the engine's import graph: no cycles, no upward arrows, no bpy, module size"
 
-LAYERS = ("foundations", "io", "raster", "spike", "scene", "geometry", "evaluate", "export", "train", "cli")
+LAYERS = ("foundations", "io", "raster", "spike", "scene", "geometry", "evaluate", "export", "train", "cluster",
+          "cli")
 FOUNDATIONS = {"engine", "engine.errors", "engine.cameras", "engine.colour", "engine.numba_cache"}
 # `python -m engine` is the command line's front door: it sits with engine.cli, at the top
 ENTRY_POINTS = {"engine.__main__": "cli"}

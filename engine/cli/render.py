@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cluster.ray_runtime import ClusterError
 from ..errors import CaptureError, RunError
 from ..export.cached import load_result
 from ..export.render_views import orbit_views, output_names, read_camera_file, write_renders
@@ -48,6 +49,10 @@ def add_arguments(p) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of --video (default 30)")
     p.add_argument("--device", default="auto", help="auto (default: CUDA when available), cpu, cuda, cuda:1")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--shards", type=int, default=1,
+                   help="split the frames into N ranges rendered as Ray tasks (same files; needs Ray)")
+    p.add_argument("--address", default=None,
+                   help="with --shards: HOST:PORT of a running Ray cluster (default: a local Ray instance)")
 
 
 def _first_train_view(scene, run):
@@ -136,6 +141,19 @@ def write_video(paths: list, target, fps: float) -> Path:
     raise ValueError(f"{target}: --video writes .gif or .mp4")
 
 
+def _render_sharded(args, views, stems) -> list:
+    """The frames over ``--shards`` Ray tasks (engine.cluster.render_shards): the same files."""
+    from ..cluster.render_shards import render_sharded
+
+    log = None if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    res = render_sharded(args.run, views, stems, args.out, args.format, shards=args.shards, address=args.address,
+                         device=args.device, log=log)
+    if log:
+        log(f"rendered {len(res['paths'])} frame(s) in {res['shards']} task(s): {res['seconds']:.1f} s "
+            f"(+ {res['ray_start_seconds']:.1f} s to start Ray)")
+    return [Path(p) for p in res["paths"]]
+
+
 def main(args) -> int:
     try:
         if args.video and Path(args.video).suffix.lower() not in (".gif", ".mp4"):
@@ -145,13 +163,16 @@ def main(args) -> int:
         paths = []
         names = [f"{i:06d}" for i in range(len(views))] if args.orbit is not None else None
         stems = output_names(views, names)  # refused before anything renders
-        for i, (v, stem) in enumerate(zip(views, stems)):
-            paths += write_renders(scene, [v], args.out, args.format, names=[stem])
-            if not args.quiet:
-                print(f"render {i + 1}/{len(views)} t={v.time:.5f} s", file=sys.stderr, flush=True)
+        if args.shards > 1:
+            paths = _render_sharded(args, views, stems)
+        else:
+            for i, (v, stem) in enumerate(zip(views, stems)):
+                paths += write_renders(scene, [v], args.out, args.format, names=[stem])
+                if not args.quiet:
+                    print(f"render {i + 1}/{len(views)} t={v.time:.5f} s", file=sys.stderr, flush=True)
         if args.video:
             write_video(paths, args.video, args.fps)
-    except (CaptureError, RunError, ValueError) as exc:
+    except (CaptureError, RunError, ValueError, ClusterError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print(f"wrote {len(paths)} {args.format.upper()} file(s) to {args.out}"
