@@ -86,3 +86,30 @@ def test_weights_file_errors_name_the_file(tmp_path):
     np.savez(tmp_path / "partial.npz", **partial)
     with pytest.raises(ValueError, match="lin3_weight"):
         LPIPS(tmp_path / "partial.npz")
+
+
+def test_lpips_passes_are_bounded_by_pixels_not_frames(monkeypatch):
+    """Issue 43: 16 frames of 1080x720 in one LPIPS pass took 5.9 GB; a pass now holds at most
+    LPIPS_BATCH_PIXELS, with the same scores."""
+    from engine.evaluate import heldout
+
+    calls = []
+    real = heldout.lpips
+
+    def spy(a, b, device="cpu"):
+        calls.append(len(a))
+        return real(a, b, device=device)
+
+    monkeypatch.setattr(heldout, "lpips", spy)
+    rng = np.random.default_rng(0)
+    pairs = [({}, rng.random((64, 64, 3)).astype(np.float32), rng.random((64, 64, 3)).astype(np.float32))
+             for _ in range(5)]
+    monkeypatch.setattr(heldout, "LPIPS_BATCH_PIXELS", 2 * 64 * 64)
+    heldout._score_lpips(pairs, "cpu")
+    assert calls == [2, 2, 1]
+    bounded = [row["lpips"] for row, _, _ in pairs]
+    calls.clear()
+    monkeypatch.setattr(heldout, "LPIPS_BATCH_PIXELS", 10 ** 9)
+    heldout._score_lpips(pairs, "cpu")
+    assert calls == [5]
+    np.testing.assert_allclose(bounded, [row["lpips"] for row, _, _ in pairs], atol=1e-5)

@@ -158,3 +158,16 @@ def test_a_vidar_shaped_spike_sensor_is_a_camera_of_its_own(tmp_path):
     squashed = resample_to(rgb_to_luma_linear(rgb), 25, 40).numpy().ravel()
     c_lens, c_squash = np.corrcoef(rate.ravel(), through_lens)[0, 1], np.corrcoef(rate.ravel(), squashed)[0, 1]
     assert c_lens > 0.8 and c_lens > c_squash + 0.02, (c_lens, c_squash)
+
+
+@NEEDS_BPY
+def test_real_size_preset_is_the_papers_rig():
+    """Issue 43: --preset real is the paper's rig (RGB 1080x720, a Vidar-shaped 400x250 spike
+    camera, at least 0.5 s) with the simulated sensor noise on; a benchmark input only."""
+    sys.path.insert(0, str(REPO_ROOT / "scripts"))
+    import make_capture
+
+    real = make_capture.PRESETS["real"]
+    assert real["rgb_size"] == (1080, 720) and real["spike_size"] == (400, 250) and real["seconds"] >= 0.5
+    assert make_capture.SPIKE_HZ == 20000.0
+    assert make_capture.GAIN_STD > 0 and make_capture.DARK_CURRENT > 0 and make_capture.PHOTONS_PER_THRESHOLD > 0

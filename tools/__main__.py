@@ -24,6 +24,7 @@ COMMANDS = {
     "compact-steps": "compact_steps",
     "gpu-check": "gpu_check",
     "bench-cluster": "bench_cluster",
+    "time-to-result": "time_to_result",
 }
 
 # diagnostics with their own argument parser: ``main(argv)`` gets the arguments after the command

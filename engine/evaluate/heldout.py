@@ -48,6 +48,8 @@ from .lpips import lpips
 from .metrics import is_interframe, motion_masks, psnr, ssim, static_colour_bias, static_colour_shift, static_mask
 
 LPIPS_BATCH = 16  # eval frames per LPIPS forward pass: batching is ~15x faster than one by one on 2 cores
+# ...but no more pixels a pass than 16 frames of 320x240: 16 frames of 1080x720 took 5.9 GB (issue 43)
+LPIPS_BATCH_PIXELS = 16 * 320 * 240
 
 
 def _mean(values) -> float | None:
@@ -160,8 +162,9 @@ def _score_lpips(pairs: list, device) -> None:
     for shape, group in by_shape.items():
         if min(shape[:2]) < LPIPS_MIN_SIZE:
             continue
-        for s in range(0, len(group), LPIPS_BATCH):
-            chunk = group[s:s + LPIPS_BATCH]
+        batch = max(1, min(LPIPS_BATCH, LPIPS_BATCH_PIXELS // (shape[0] * shape[1])))
+        for s in range(0, len(group), batch):
+            chunk = group[s:s + batch]
             values = lpips(np.stack([p for _, p, _ in chunk]), np.stack([np.asarray(g)[..., :3] for _, _, g in chunk]),
                            device=device)
             for (row, _, _), v in zip(chunk, values):

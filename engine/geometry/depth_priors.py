@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from .planesweep import rgb_cameras
+from .resolution import at_size
 from .stereo import StereoUnavailable, capture_fusion, pair_instants
 
 
@@ -27,7 +28,8 @@ def fused_depth_priors(capture, frames, cameras: list[str], *, fusion=None) -> d
             if f.camera == fused.camera and i is not None:
                 d, ok = fused.instant_depth(i)
                 d = np.nan_to_num(d, nan=0.0).astype(np.float32)
-                out[id(f)] = (d, ok)
+                k = capture.view(f).intrinsics  # a fusion at a working resolution: back at the frame's
+                out[id(f)] = (at_size(d, k.height, k.width), at_size(ok, k.height, k.width))
     return out
 
 

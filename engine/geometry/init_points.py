@@ -35,7 +35,8 @@ from .planesweep import (
     stereo_depths,
     stereo_pair,
 )
-from .stereo import StereoUnavailable, backdrop_points, capture_fusion, fused_points
+from .resolution import backdrop_points, backdrop_stride
+from .stereo import StereoUnavailable, capture_fusion, fused_points
 
 
 @dataclass
@@ -200,10 +201,11 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
         for f in (fa, fb):
             ok = np.isfinite(f.static_depth)
             if found:
-                parts.append(plane_backdrop_points(f.view, np.median(f.images, axis=0), found, backdrop, max_depth=far))
+                parts.append(plane_backdrop_points(f.view, np.median(f.images, axis=0), found, backdrop, max_depth=far,
+                                                   stride=backdrop_stride(f.view.intrinsics.width)))
             elif ok.any():
                 parts.append(backdrop_points(f, fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok),
-                                             backdrop))
+                                             backdrop, stride=backdrop_stride(f.view.intrinsics.width)))
         if parts:
             back = InitPoints(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), "backdrop")
     return InitPoints(xyz, rgb, "stereo", info), back

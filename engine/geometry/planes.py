@@ -3,7 +3,7 @@
 A table-top or room capture is dominated by a few large planes (floor, wall, table top). Where
 the two train cameras saw nothing -- beyond their image borders, or a weakly textured patch
 that stereo could not match -- the planes still say where the surface is, while continuing the
-depth map linearly from the border (``stereo.extrapolate_inverse_depth``) bends it wherever the
+depth map linearly from the border (``resolution.extrapolate_inverse_depth``) bends it wherever the
 border crosses an object (docs/experiments/two-view-geometry.md: 4x the depth error at 20-30 deg).
 
 * :func:`fit_planes` -- sequential RANSAC on the static cloud (numpy), each plane refined by a

@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from .planes import plane_fill
+from .resolution import resized_to, working_view
 from .stereo_filters import half_occlusion_band
 
 
@@ -380,10 +381,11 @@ def capture_fusion(capture, cameras: list[str], frames=None, *, rel_tolerance: f
     va.name, vb.name = a, b
     if _same_pose(va, vb):
         raise StereoUnavailable(f"cameras {a} and {b} have identical poses: not a stereo pair")
+    va, vb = working_view(va), working_view(vb)
     pair = rectify_pair(va, vb)
     da, ca, db, cb, ia, ib = [], [], [], [], [], []
     for _t, fa, fb in inst:
-        img_a, img_b = fa.load_rgb(), fb.load_rgb()
+        img_a, img_b = resized_to(fa.load_rgb(), va), resized_to(fb.load_rgb(), vb)
         try:
             (d1, c1), (d2, c2) = pair_depths(img_a, img_b, pair, **options)
         except cv2.error as exc:  # e.g. images too small for the matcher's window
@@ -400,6 +402,7 @@ def capture_fusion(capture, cameras: list[str], frames=None, *, rel_tolerance: f
         raise StereoUnavailable(f"stereo between {a} and {b} matched almost nothing ({100 * per_instant:.2f}% of "
                                 "pixels): the views do not overlap or the images carry no texture")
     info = {"cameras": [a, b], "instants": len(inst), "baseline_m": round(pair.baseline, 6),
+            "size": [va.intrinsics.width, va.intrinsics.height],
             "vertical": pair.vertical, "matched_per_instant": round(per_instant, 4),
             "static_coverage": round(cover, 4)}
     return fa_, fb_, info
@@ -447,54 +450,3 @@ def fused_points(fused: list[FusedDepth], *, instant: int = 0, fill=None, fill_s
     rgb = np.concatenate(rgb).astype(np.float32) if rgb else np.zeros((0, 3), np.float32)
     good = np.isfinite(xyz).all(1)
     return xyz[good], rgb[good], counts
-
-
-def extrapolate_inverse_depth(inv: np.ndarray, pad_x: int, pad_y: int, k: int = 6) -> np.ndarray:
-    """[H + 2 pad_y, W + 2 pad_x] inverse depth continued linearly beyond each border from the
-    slope over the last ``k`` pixels (a plane's inverse depth is affine in pixel coordinates,
-    so a floor or wall continues as itself); clamped to stay positive (beyond the horizon:
-    the farthest value seen)."""
-    floor = float(np.nanmin(inv[inv > 0])) if np.any(inv > 0) else 1e-3
-
-    def extend_cols(a: np.ndarray, pad: int) -> np.ndarray:
-        if pad <= 0:
-            return a
-        kk = min(k, a.shape[1] - 1)
-        r = np.arange(1, pad + 1, dtype=np.float64)[None, :]
-        sl = (a[:, :1] - a[:, kk:kk + 1]) / kk
-        sr = (a[:, -1:] - a[:, -1 - kk:-kk]) / kk
-        left = (a[:, :1] + sl * r)[:, ::-1]
-        right = a[:, -1:] + sr * r
-        return np.concatenate([left, a, right], 1)
-
-    out = extend_cols(np.asarray(inv, np.float64), pad_x)
-    out = extend_cols(out.T, pad_y).T
-    return np.maximum(out, floor).astype(np.float32)
-
-
-def backdrop_points(fused: FusedDepth, filled_depth: np.ndarray, fraction: float, stride: int = 4):
-    """Points beyond the image borders of one camera (a ring ``fraction`` x the image size
-    wide): depth continued from the (hole-filled) static depth by
-    :func:`extrapolate_inverse_depth`, colour the nearest border pixel's. What a viewer sees
-    where no train camera looked (docs/experiments/two-view-geometry.md "No black holes"). Returns (xyz [N,3], rgb
-    [N,3])."""
-    k = fused.view.intrinsics
-    px, py = int(round(fraction * k.width)), int(round(fraction * k.height))
-    if px <= 0 and py <= 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
-    inv = np.where(filled_depth > 0, 1.0 / np.maximum(filled_depth, 1e-9), 0.0)
-    inv_ext = extrapolate_inverse_depth(inv, px, py)
-    med = np.median(fused.images, axis=0).astype(np.float32)
-    col = cv2.copyMakeBorder(med, py, py, px, px, cv2.BORDER_REPLICATE)
-    He, We = inv_ext.shape
-    ring = np.ones((He, We), bool)
-    ring[py:py + k.height, px:px + k.width] = False
-    grid = np.zeros_like(ring)
-    grid[stride // 2::stride, stride // 2::stride] = True
-    sel = ring & grid
-    v, u = np.nonzero(sel)
-    d = 1.0 / inv_ext[v, u]
-    cam = np.stack([(u - px + 0.5 - k.cx) / k.fx * d, (v - py + 0.5 - k.cy) / k.fy * d, d], -1)
-    c2w = np.linalg.inv(np.asarray(fused.view.viewmat, np.float64))
-    xyz = cam @ c2w[:3, :3].T + c2w[:3, 3]
-    return xyz.astype(np.float32), col[v, u].astype(np.float32)

@@ -37,6 +37,7 @@ from ...scene.gaussians import GaussianModel
 from ...scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
 from ...scene.trajectory import extrapolate_junctions, gradient_sink
 from ..config import TrainConfig, block_weight
+from ..frames.coarse import CoarseItems
 from ..guidance.quiet_curves import quiet_curves_factory
 from ..guidance.spike_flow import spike_flow_factory
 from ..guidance.spike_guidance import guidance_factory, spike_stream_info
@@ -125,6 +126,7 @@ class Trainer:
             vt["camera"] = f.camera
             vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight
             self.items.append(vt)
+        self.coarse = CoarseItems()
         if cfg.losses.depth > 0:  # issue 14: fused SGBM depth at every RGB instant
             priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
             self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
@@ -383,6 +385,8 @@ class Trainer:
         if stage == "deform" and self.cfg.schedule.time_curriculum > 0:
             self._carry_forward(self.time_window(step))
         item = self.items[self.frame_index(step)]
+        if stage == "static":  # large frames warm up at half size (engine.train.frames.coarse)
+            item = self.coarse(item)
         fine = self.fine_provider(item) if (self.fine_provider is not None and stage == "deform") else None
         rgb, alpha, meta, attrs = model.render(item, fine=fine)
         means2d = meta.get("means2d")

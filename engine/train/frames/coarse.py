@@ -1,0 +1,51 @@
+"""Coarse-to-fine for large frames (issue 43): the static warm-up renders and scores a train frame
+at most :data:`COARSE_MAX_WIDTH` wide; the deformation stage uses the full frame.
+
+The warm-up fits colours and the static geometry's large-scale layout, which half the pixels carry
+as well; every step of it costs a fraction at 1080x720. Frames no wider than the limit are used as
+they are (every capture of the test suite and the published figures).
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ...scene.model import scaled_view
+
+COARSE_MAX_WIDTH = 540  # half the paper's 1080-px RGB frames
+
+
+def coarse_item(item: dict, max_width: int = COARSE_MAX_WIDTH) -> dict:
+    """``item`` (a trainer frame: view tensors, image [1, H, W, 3], optional stereo depth and mask
+    [H, W]) at most ``max_width`` wide: the camera scaled (same field of view), the image
+    area-averaged, the depth prior sampled nearest (no depth between two surfaces). The item
+    itself when it is no wider."""
+    if item["width"] <= max_width:
+        return item
+    out = scaled_view(item, max_width / item["width"])
+    h, w = out["height"], out["width"]
+    img = item["image"].permute(0, 3, 1, 2)
+    out["image"] = F.interpolate(img, size=(h, w), mode="area").permute(0, 2, 3, 1).contiguous()
+    if "stereo_depth" in item:
+        d = item["stereo_depth"][None, None].float()
+        m = item["stereo_mask"][None, None].float()
+        out["stereo_depth"] = F.interpolate(d, size=(h, w), mode="nearest")[0, 0]
+        out["stereo_mask"] = F.interpolate(m, size=(h, w), mode="nearest")[0, 0] > 0.5
+    return out
+
+
+class CoarseItems:
+    """Each frame's coarse item, made once."""
+
+    def __init__(self, max_width: int | None = None):
+        self.max_width = int(max_width if max_width is not None else COARSE_MAX_WIDTH)
+        self._items: dict[int, dict] = {}
+
+    def __call__(self, item: dict) -> dict:
+        if item["width"] <= self.max_width:
+            return item
+        key = int(item["index"])
+        if key not in self._items:
+            with torch.no_grad():
+                self._items[key] = coarse_item(item, self.max_width)
+        return self._items[key]
