@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import shutil
 import signal
 import socket
@@ -20,6 +19,7 @@ ray = pytest.importorskip("ray")
 from engine.cluster.batch import BatchJob, BatchSettings, plan_jobs, read_attempts, train_capture  # noqa: E402
 from engine.cluster.ray_runtime import ClusterError, check_reachable, split_address  # noqa: E402
 from engine.cluster.render_shards import shard_ranges  # noqa: E402
+from tools.bench_cluster import start_cluster  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RAY_CLI = str(Path(sys.executable).parent / "ray")
@@ -33,8 +33,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-# Ray's token authentication, set the same way on every node and client (as Ray's docs ask);
-# the token lives in the test's folder, not in the user's ~/.ray
+# the cluster's environment (token authentication, set the same way on every node and client, as
+# Ray's docs ask; the token in the test's folder, not the user's ~/.ray), for every command here
 ENV = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
 
 
@@ -45,21 +45,12 @@ def _engine(*args, timeout=600):
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    """A head node and a worker node (one CPU each) on this machine; its address."""
-    token = tmp_path_factory.mktemp("ray_token") / "auth_token"
-    token.write_text(secrets.token_hex(32))
-    ENV.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN_PATH=str(token))
-    port = _free_port()
-    common = ["--num-cpus=1", "--object-store-memory=100000000", "--disable-usage-stats"]
-    env = ENV
-    head = subprocess.run([RAY_CLI, "start", "--head", f"--port={port}", "--include-dashboard=false", *common],
-                          capture_output=True, text=True, timeout=120, env=env)
-    assert head.returncode == 0, head.stdout[-2000:] + head.stderr[-2000:]
-    address = f"127.0.0.1:{port}"
+    """A head node and a worker node (one CPU each) on this machine, started by `ray start` with
+    token authentication (tools.bench_cluster.start_cluster); its address."""
+    address, env = start_cluster(tmp_path_factory.mktemp("ray"))
+    ENV.clear()
+    ENV.update(env)
     try:
-        worker = subprocess.run([RAY_CLI, "start", f"--address={address}", *common], capture_output=True, text=True,
-                                timeout=120, env=env)
-        assert worker.returncode == 0, worker.stdout[-2000:] + worker.stderr[-2000:]
         yield address
     finally:
         subprocess.run([RAY_CLI, "stop", "--force"], capture_output=True, timeout=120, env=ENV)

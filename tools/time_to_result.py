@@ -46,7 +46,6 @@ def main(args) -> int:
     capture = load_capture(args.capture)
     stages: list[dict] = []
     marks = {"first_deform": None}
-    t_start = [None]
 
     def train_fn(cap, run_dir, *, progress, **kw):
         def on_progress(p):
@@ -56,7 +55,6 @@ def main(args) -> int:
                 marks["first_step"] = (time.perf_counter(), int(p["step"]))
             progress(p)
 
-        t_start[0] = time.perf_counter()
         summary = train(cap, run_dir, progress=on_progress, **kw)
         marks["end"] = (time.perf_counter(), int(summary["step"]))
         marks["peak_after_train"] = peak_rss_mb()[0]

@@ -45,7 +45,7 @@ def main(args) -> int:
                              overrides=overrides, device=args.device, evaluate=not args.no_eval)
     try:
         summary = run_batch(args.captures, args.out, settings, address=args.address,
-                            cpus_per_task=args.cpus_per_task, gpus_per_task=args.gpus_per_task,
+                            cpus_per_task=args.cpus_per_task, gpus=args.gpus_per_task,
                             retries=args.retries, log=None if args.quiet else print_log)
     except ClusterError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -20,13 +20,14 @@ import os
 import platform
 import sys
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..errors import CaptureError, RunError
 from ..io.capture import load_capture
 from ..io.checkpoint import read_run_json, write_json
-from .ray_runtime import ClusterError, cluster_gpus, connect, worker_env
+from .ray_runtime import ClusterError, cluster_gpus, connect, gpus_per_task, worker_env
 
 SUMMARY = "batch.json"
 ATTEMPTS = "batch_attempts.jsonl"
@@ -93,6 +94,11 @@ def read_attempts(run_dir) -> list[dict]:
     return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
+def _row(job: BatchJob, **fields) -> dict:
+    """A summary row for ``job`` (its name, capture and run folder) with ``fields``."""
+    return {"name": job.name, "capture": job.capture, "run_dir": job.run_dir, **fields}
+
+
 def train_capture(job: BatchJob, settings: BatchSettings, report=None) -> dict:
     """Train (resuming what a previous attempt checkpointed) and score one capture; the summary
     row. ``report(name, dict)`` is told the step, total and stage now and then. A capture or run
@@ -102,7 +108,7 @@ def train_capture(job: BatchJob, settings: BatchSettings, report=None) -> dict:
 
     run_dir = Path(job.run_dir)
     t0 = time.perf_counter()
-    row = {"name": job.name, "capture": job.capture, "run_dir": job.run_dir}
+    row = _row(job)
     try:
         resumed_from = int(read_run_json(run_dir).get("step") or 0)
     except RunError:
@@ -166,9 +172,7 @@ def _load_summary(out: Path, settings: BatchSettings) -> dict:
 def write_summary(out: Path, settings: BatchSettings, rows: dict, jobs: list[BatchJob], extra: dict) -> Path:
     order = [j.name for j in jobs]
     listed = [rows.get(n, {"name": n, "status": "pending"}) for n in order]
-    counts = {}
-    for r in listed:
-        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    counts = dict(Counter(r["status"] for r in listed))
     data = {"settings": asdict(settings), "updated": _now(), "counts": counts, **extra, "captures": listed}
     write_json(out / SUMMARY, data)
     return out / SUMMARY
@@ -209,11 +213,11 @@ def _task(ray, cpus: float, gpus: float, retries: int):
 
 
 def run_batch(captures, out_dir, settings: BatchSettings, *, address: str | None = None, cpus_per_task: float = 1.0,
-              gpus_per_task: float | None = None, retries: int = 3, log=None) -> dict:
+              gpus: float | None = None, retries: int = 3, log=None) -> dict:
     """Train every capture as a Ray task; returns the summary (also in ``OUT/batch.json``).
 
     ``address``: a running cluster (``ray start --head``), else a local Ray instance.
-    ``gpus_per_task``: None = one GPU per task where the cluster has GPUs, else none.
+    ``gpus``: GPUs per task; None = one where the cluster has GPUs, else none.
     ``log(text)``: progress lines for the whole batch."""
     log = log or (lambda text: None)
     out = Path(out_dir).resolve()
@@ -231,8 +235,7 @@ def run_batch(captures, out_dir, settings: BatchSettings, *, address: str | None
         try:
             load_capture(job.capture)
         except CaptureError as exc:
-            rows[job.name] = {"name": job.name, "capture": job.capture, "run_dir": job.run_dir,
-                              "status": "failed", "error": str(exc)}
+            rows[job.name] = _row(job, status="failed", error=str(exc))
             n_bad += 1
             log(f"batch: {job.name} cannot load: {exc}")
             continue
@@ -245,9 +248,8 @@ def run_batch(captures, out_dir, settings: BatchSettings, *, address: str | None
         ray, start_s = connect(address)
         extra.update(ray_start_seconds=round(start_s, 2), cluster_cpus=ray.cluster_resources().get("CPU", 0.0),
                      cluster_gpus=cluster_gpus(ray))
-        gpus = gpus_per_task if gpus_per_task is not None else (1.0 if cluster_gpus(ray) >= 1 else 0.0)
         board = _progress_board(ray, board_name(out))
-        task = _task(ray, cpus_per_task, gpus, retries)
+        task = _task(ray, cpus_per_task, gpus_per_task(ray, gpus), retries)
         pending = {task.remote(job, settings, board): job for job in todo}
         last_line, last_t = "", 0.0
         while pending:
@@ -257,8 +259,8 @@ def run_batch(captures, out_dir, settings: BatchSettings, *, address: str | None
                 try:
                     row = ray.get(ref)
                 except Exception as exc:  # the worker died more than `retries` times, or Ray failed it
-                    row = {"name": job.name, "capture": job.capture, "run_dir": job.run_dir, "status": "failed",
-                           "error": f"{exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"}
+                    row = _row(job, status="failed",
+                               error=f"{exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
                 row["attempts"] = len(read_attempts(job.run_dir))
                 rows[job.name] = row
                 write_summary(out, settings, rows, jobs, extra)

@@ -88,6 +88,13 @@ def cluster_gpus(ray) -> float:
     return float(ray.cluster_resources().get("GPU", 0.0))
 
 
+def gpus_per_task(ray, wanted: float | None) -> float:
+    """``wanted`` GPUs for each task, or by default one where the cluster has GPUs, else none."""
+    if wanted is not None:
+        return float(wanted)
+    return 1.0 if cluster_gpus(ray) >= 1 else 0.0
+
+
 def worker_env() -> dict:
     """Ray's runtime environment for our tasks: the engine from the path it has here (the same
     path on every node, like the captures), numba's cache where it already is."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .ray_runtime import ClusterError, cluster_gpus, connect, worker_env
+from .ray_runtime import ClusterError, connect, gpus_per_task, worker_env
 
 
 def shard_ranges(n: int, shards: int) -> list[tuple[int, int]]:
@@ -30,14 +30,11 @@ def render_range(run: str, views: list, stems: list[str], out_dir: str, fmt: str
     from ..export.render_views import write_renders
 
     scene = load_result(run, device=device)
-    paths = []
-    for v, stem in zip(views, stems):  # one view a call: the same call a one-process render makes
-        paths += write_renders(scene, [v], out_dir, fmt, names=[stem])
-    return [str(p) for p in paths]
+    return [str(p) for p in write_renders(scene, views, out_dir, fmt, names=stems)]
 
 
 def render_sharded(run, views: list, stems: list[str], out_dir, fmt: str, *, shards: int, address: str | None = None,
-                   device: str = "auto", gpus_per_task: float | None = None, log=None) -> dict:
+                   device: str = "auto", gpus: float | None = None, log=None) -> dict:
     """Render ``views`` (file stems ``stems``) in ``shards`` Ray tasks; returns ``{"paths": [...]
     in view order, "seconds", "ray_start_seconds", "shards"}``."""
     log = log or (lambda text: None)
@@ -48,8 +45,8 @@ def render_sharded(run, views: list, stems: list[str], out_dir, fmt: str, *, sha
     ranges = shard_ranges(len(views), shards)
     ray, start_s = connect(address)
     t0 = time.perf_counter()
-    gpus = gpus_per_task if gpus_per_task is not None else (1.0 if cluster_gpus(ray) >= 1 else 0.0)
-    task = ray.remote(render_range).options(num_cpus=1, num_gpus=gpus, max_retries=3, runtime_env=worker_env())
+    task = ray.remote(render_range).options(num_cpus=1, num_gpus=gpus_per_task(ray, gpus), max_retries=3,
+                                            runtime_env=worker_env())
     refs = {task.remote(run, views[a:b], stems[a:b], out_dir, fmt, device): (a, b) for a, b in ranges}
     done: dict[tuple[int, int], list[str]] = {}
     pending = list(refs)
