@@ -201,6 +201,9 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
         se = summary["stopped_early"]
         msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} "
                     "(held-out PSNR no longer improving)")
+    elif summary.get("ended_by") == "step_cap" and summary.get("budget_used") is not None:
+        msgs.append(f"ended at the step cap after {summary.get('step')} steps, {summary['budget_used']:.0%} of the "
+                    "time budget (more steps cost the new view)")
     if res.get("metrics_error"):
         msgs.append(f"evaluation failed: {res['metrics_error']}")
     if res.get("samples") is not None:

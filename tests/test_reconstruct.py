@@ -304,11 +304,11 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     worker = roundtrip_util.addon_module("bt4d_addon.worker")
     calls = []
 
+    summary = {"status": "finished", "step": 3, "total_steps": 5, "stopped_early": {"step": 3, "total_steps": 5}}
+
     def fake_job(*, progress, cancel, **kw):
         calls.append(kw)
-        return {"summary": {"status": "finished", "step": 3, "total_steps": 5,
-                            "stopped_early": {"step": 3, "total_steps": 5}}, "metrics": None, "samples": None,
-                "run_dir": kw["run_dir"]}
+        return {"summary": dict(summary), "metrics": None, "samples": None, "run_dir": kw["run_dir"]}
 
     monkeypatch.setattr(worker, "reconstruct_job", fake_job)
     assert bpy.ops.bt4d.import_capture(directory=str(demo_capture)) == {"FINISHED"}
@@ -362,3 +362,7 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s.early_stop = True
     r = bpy.context.scene.bt4d_run
     assert r.status == "FINISHED" and "stopped early at step 3/5" in r.message
+    # a budget run that ended at the step cap says so, with the share of its time it used
+    summary.update(stopped_early=None, step=80, total_steps=80, ended_by="step_cap", budget_used=0.14)
+    assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
+    assert "step cap after 80 steps, 14% of the time budget" in r.message, r.message

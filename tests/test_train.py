@@ -53,6 +53,7 @@ def test_static_scene_is_recovered_from_random_init(static_capture, tmp_path):
     s = train(static_capture, run, overrides={"iterations": 120, "init": "random", "static_fraction": 1.0,
                                               "init_random_points": 1500})
     assert s["status"] == "finished" and s["init"]["method"] == "random"
+    assert s["ended_by"] == "steps" and s["budget_used"] is None  # no budget: it ran its steps
     m = evaluate(run)
     # an untrained model (random colours, opacity 0.1) scores ~10 dB on this scene
     assert m["psnr"] > 19.0, m
@@ -442,6 +443,7 @@ def test_early_stop_stops_on_a_plateau_with_held_back_train_proxy(tiny_capture, 
     assert st["step"] == 23, st
     info = read_run_json(run)
     assert info["status"] == "finished" and info["stopped_early"] == st and info["step"] == st["step"]
+    assert info["ended_by"] == s["ended_by"] == "converged"
     proxy = info["early_stop_proxy"]
     # the proxy is train frames (one camera each at the 2nd and 3rd instant), never eval frames
     assert proxy["source"] == "held_back_train" and len(proxy["frames"]) == 2
@@ -617,6 +619,7 @@ def test_seconds_budget_run_ends_within_5_percent_of_its_budget(tiny_capture, tm
     est = s["budget_estimates"]
     assert len(est["deform"]) >= 3, est
     assert 0.95 * budget <= s["train_seconds"] <= budget + 0.3, s
+    assert s["ended_by"] == "budget" and s["budget_used"] >= 0.95  # run.json says so
     assert s["step"] >= 0.97 * s["total_steps"]  # the schedule ran (nearly) to its end
     assert read_run_json(tmp_path / "run")["budget_estimates"]["deform"] == est["deform"]
 
@@ -677,7 +680,13 @@ def test_a_budget_run_the_cap_binds_ends_early_at_the_cap(tiny_capture, tmp_path
               overrides={"init": "ply", "iterations": 40, "budget_step_cap": 2.0, "static_fraction": 0.2})
     assert s["status"] == "finished" and not s["stopped_by_budget"]
     assert s["step"] == s["total_steps"] == 80 and s["train_seconds"] < 4.0
-    assert read_run_json(tmp_path / "run")["budget_estimates"]["step_cap"] == 80
+    info = read_run_json(tmp_path / "run")
+    assert info["budget_estimates"]["step_cap"] == 80
+    # run.json says why it ended and how much of its time it used; the command line says it in one line
+    assert info["ended_by"] == s["ended_by"] == "step_cap" and 0 < info["budget_used"] == s["budget_used"] < 0.5
+    from engine.cli.train import ended_note
+    assert "step cap after 80 steps" in ended_note(s) and "% of the budget" in ended_note(s)
+    assert ended_note({**s, "ended_by": "budget"}) is None
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda"])
@@ -803,3 +812,31 @@ def test_preparation_stages_are_announced_before_the_first_step(tiny_capture, tm
     assert [p["stage"] for p in prep] == stages
     assert all(p["seconds"] >= 0 for p in prep) and all(p["peak_rss_mb"] > 50 for p in prep)
     assert [p["peak_rss_mb"] for p in prep] == sorted(p["peak_rss_mb"] for p in prep)  # a peak only grows
+
+
+def test_densification_cap_grows_with_the_frames_and_reaches_densify(tiny_capture, tmp_path, monkeypatch):
+    """densify.max_gaussians is the count at 160x120; larger frames get sqrt(pixel ratio) times it (at most
+    DENSIFY_MAX_SCALE), smaller ones keep it. At 320x240 the fixed 20k left no room once the backdrop ring's
+    15k points were in (docs/experiments/more-steps-random-scenes.md). The run records the cap it used."""
+    from engine.scene.gaussians import GaussianModel
+    from engine.train.loop import scene_setup
+
+    cap = scene_setup.densify_cap
+    assert cap(20000, [{"width": 160, "height": 120}]) == (20000, 1.0)
+    assert cap(20000, [{"width": 320, "height": 240}] * 2) == (40000, 2.0)
+    assert cap(20000, [{"width": 1080, "height": 720}]) == (80000, scene_setup.DENSIFY_MAX_SCALE)
+    assert cap(20000, [{"width": 80, "height": 60}]) == (20000, 1.0) and cap(5, []) == (5, 1.0)
+    # a run: the scaled cap is recorded with the initial cloud and is what densification gets
+    monkeypatch.setattr(scene_setup, "DENSIFY_REFERENCE_PIXELS", 32 * 24 / 4)  # these frames count as 2x
+    seen = []
+    real = GaussianModel.densify_and_prune
+
+    def spy(self, **kw):
+        seen.append(kw["max_gaussians"])
+        return real(self, **kw)
+
+    monkeypatch.setattr(GaussianModel, "densify_and_prune", spy)
+    s = train(tiny_capture, tmp_path / "run", overrides={"init": "ply", "iterations": 30, "densify.every": 5,
+                                                          "densify.max_gaussians": 700})
+    assert s["init"]["max_gaussians"] == 1400 and read_run_json(tmp_path / "run")["init"]["max_gaussians"] == 1400
+    assert seen and set(seen) == {1400}

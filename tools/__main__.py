@@ -25,6 +25,7 @@ COMMANDS = {
     "gpu-check": "gpu_check",
     "bench-cluster": "bench_cluster",
     "time-to-result": "time_to_result",
+    "steps-curve": "steps_curve",
 }
 
 # diagnostics with their own argument parser: ``main(argv)`` gets the arguments after the command

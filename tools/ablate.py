@@ -27,17 +27,16 @@ from __future__ import annotations
 
 import csv
 import json
-import sys
 import time
 from pathlib import Path
 
 from engine.cli.train import parse_overrides
-from engine.errors import CaptureError, RunError
 from engine.evaluate import evaluate
 from engine.train import train
 
 from . import report
 from .report import fmt, text_table
+from .run_args import add_run_arguments, run_logged
 
 HELP = "train each ablation variant for the same wall time, evaluate, tabulate and plot"
 
@@ -88,11 +87,7 @@ def add_arguments(p) -> None:
     p.add_argument("--out", required=True, help="output folder: one run per variant + ablation.csv/png/json")
     p.add_argument("--variants", default=",".join(VARIANTS),
                    help=f"comma-separated subset of: {', '.join(VARIANTS)}")
-    p.add_argument("--preset", default="fast", choices=["fast", "balanced", "quality"])
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default=None, help="cpu, cuda (default: cuda when available)")
-    p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
-                   help="override a preset field for every variant (repeatable)")
+    add_run_arguments(p, "variant")
     p.add_argument("--resume", action="store_true", help="reuse finished variants' metrics.json in --out")
 
 
@@ -197,12 +192,9 @@ def main(args) -> int:
     variants = parse_variants(args.variants)
     overrides = parse_overrides(args.overrides)
     out = Path(args.out)
-    try:
-        rows = run_ablation(args.capture, out, args.seconds, variants, preset=args.preset, seed=args.seed,
-                            device=args.device, overrides=overrides, resume=args.resume, steps=args.steps,
-                            log=lambda s: print(s, file=sys.stderr, flush=True))
-    except (CaptureError, RunError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    rows = run_logged(run_ablation, args.capture, out, args.seconds, variants, preset=args.preset, seed=args.seed,
+                      device=args.device, overrides=overrides, resume=args.resume, steps=args.steps)
+    if rows is None:
         return 1
     table = format_table(rows)
     print(table)

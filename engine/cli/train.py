@@ -110,5 +110,20 @@ def main(args) -> int:
         signal.signal(signal.SIGINT, old)
     if bar is not None:
         bar.close()
+    note = ended_note(summary)
+    if note and not args.quiet:
+        print(note, file=sys.stderr)
     print(json.dumps(summary, indent=2))
     return 0 if summary["status"] in ("finished", "cancelled") else 1
+
+
+def ended_note(summary: dict) -> str | None:
+    """One line for a budget run that did not use its time (the step cap or convergence), else None."""
+    used, steps = summary.get("budget_used"), summary.get("step")
+    if summary.get("ended_by") == "step_cap":
+        return (f"note: ended at the step cap after {steps} steps, {used:.0%} of the budget: more steps cost the new "
+                "view on the scenes we measured (schedule.step_cap; 0 turns it off)")
+    if summary.get("ended_by") == "converged" and used is not None:
+        return (f"note: converged after {steps} steps, {used:.0%} of the budget (held-back train frames stopped "
+                "improving)")
+    return None

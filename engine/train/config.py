@@ -48,7 +48,7 @@ class DensifyConfig:
     grad_threshold: float = 2e-4      # mean view-space gradient that clones or splits a Gaussian
     percent_dense: float = 0.01       # clone if the largest scale <= this x extent, else split
     prune_opacity: float = 0.005      # prune below this opacity
-    max_gaussians: int = 20000        # no densification beyond this count
+    max_gaussians: int = 20000        # no densification beyond this count at 160x120 (up to 4x for larger frames)
 
 
 @dataclass

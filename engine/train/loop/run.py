@@ -300,8 +300,11 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     fits = getattr(getattr(trainer, "spike_flow", None), "fitted", None)
     if fits:  # the spike-view flow's interval fits (engine.train.guidance.spike_flow.fit_interval)
         update_run_json(run_dir, spike_flow_fits=[fits[k] for k in sorted(fits) if fits[k]])
+    ended_by = _ended_by(status, stopped_early, stopped_by_budget, seconds, step, budget_estimates)
+    budget_used = None if seconds is None else round(train_seconds / max(float(seconds), 1e-9), 3)
     summary = {
-        "status": status, "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
+        "status": status, "ended_by": ended_by, "budget_used": budget_used,
+        "step": step, "total_steps": total, "train_seconds": round(train_seconds, 3),
         "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),
         "preset": preset, "loss": out.get("loss"), "psnr": out.get("psnr"), "init": trainer.init_info,
         "stopped_by_budget": stopped_by_budget, "resumed_from": start_step if resumed else None,
@@ -311,7 +314,25 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         budget_estimates["schedule"] = trainer.schedule.state_dict()  # the clock's segments, one per re-plan
         summary["budget_estimates"] = budget_estimates
         update_run_json(run_dir, budget_estimates=budget_estimates)
-    update_run_json(run_dir, status=status, step=step, total_steps=total, train_seconds=train_seconds,
+    update_run_json(run_dir, status=status, ended_by=ended_by, budget_used=budget_used, step=step, total_steps=total,
+                    train_seconds=train_seconds,
                     num_gaussians=summary["num_gaussians"], stopped_by_budget=stopped_by_budget,
                     stopped_early=stopped_early, skips=skips, finished=_now())
     return summary
+
+
+def _ended_by(status: str, stopped_early, stopped_by_budget: bool, seconds, step: int, budget_estimates) -> str:
+    """Why the run ended (run.json ``ended_by``): cancelled | converged (the held-back train frames
+    stopped improving, ``skip.early_stop``) | steps (a run of ``iterations`` steps, no budget) |
+    step_cap (a budget run that reached ``schedule.step_cap`` x its steps before its time,
+    engine.train.loop.budget.step_cap) | budget (it used its time)."""
+    if status == "cancelled":
+        return "cancelled"
+    if stopped_early:
+        return "converged"
+    if seconds is None:
+        return "steps"
+    cap = (budget_estimates or {}).get("step_cap")
+    if not stopped_by_budget and cap is not None and step >= int(cap):
+        return "step_cap"
+    return "budget"

@@ -6,7 +6,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["capture_path", "train_frames", "scene_extent", "robust_bounds", "scene_points", "inside_box"]
+__all__ = ["capture_path", "train_frames", "scene_extent", "robust_bounds", "scene_points", "inside_box",
+           "DENSIFY_REFERENCE_PIXELS", "densify_cap"]
+
+# densify.max_gaussians is the count for train frames of this many pixels (160x120, where it was
+# tuned); larger frames get it times the square root of their pixel ratio (320x240: 2x), up to
+# DENSIFY_MAX_SCALE: at 320x240 the fixed 20k left no room once the 15k-point backdrop ring was in
+# (docs/experiments/more-steps-random-scenes.md, "The densification cap")
+DENSIFY_REFERENCE_PIXELS = 160 * 120
+DENSIFY_MAX_SCALE = 4.0
 
 
 def capture_path(capture) -> str | None:
@@ -59,3 +67,14 @@ def inside_box(points: np.ndarray, box) -> np.ndarray:
         return points
     keep = np.all((points >= np.asarray(box[0])) & (points <= np.asarray(box[1])), axis=1)
     return points[keep] if keep.sum() >= 4 else points
+
+
+def densify_cap(max_gaussians: int, items: list) -> tuple[int, float]:
+    """(the Gaussian count densification stops at, the scale applied) for train ``items`` (view dicts
+    with width and height): ``max_gaussians`` x sqrt(mean frame pixels / DENSIFY_REFERENCE_PIXELS),
+    the scale between 1 and DENSIFY_MAX_SCALE."""
+    if not items:
+        return int(max_gaussians), 1.0
+    px = float(np.mean([int(it["width"]) * int(it["height"]) for it in items]))
+    scale = float(min(DENSIFY_MAX_SCALE, max(1.0, (px / DENSIFY_REFERENCE_PIXELS) ** 0.5)))
+    return int(round(int(max_gaussians) * scale)), round(scale, 4)

@@ -54,7 +54,7 @@ from ..run_context import RunContext
 from ..skipping.culling import FrustumCuller
 from ..skipping.early_stop import EarlyStop, hold_back_frames
 from ..skipping.freezing import TrainFreezer
-from .scene_setup import capture_path, inside_box, robust_bounds, scene_extent, scene_points, train_frames
+from .scene_setup import capture_path, densify_cap, inside_box, robust_bounds, scene_extent, scene_points, train_frames
 from .schedule import Schedule
 
 # The loss factories of a run: each ``(run context) -> [LossTerm]`` is called when a (non rgb_only) run starts. The
@@ -234,7 +234,8 @@ class Trainer:
         pts = initial_points(self.capture, cfg.init.method, max_points=cfg.init.max_points,
                              n_random=cfg.init.random_points, seed=self.seed, backdrop=cfg.init.backdrop,
                              fusion_cache=self.fusion_cache, planes=cfg.init.planes)
-        self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz))}
+        self.init_info = {"method": pts.method, **pts.info, "num_points": int(len(pts.xyz)),
+                          "max_gaussians": densify_cap(cfg.densify.max_gaussians, self.items)[0]}
         if getattr(self, "depth_prior_note", None):
             self.init_info["depth_prior_unavailable"] = self.depth_prior_note
         centers = np.stack([np.linalg.inv(it["viewmat"][0].cpu().numpy().astype(np.float64))[:3, 3]
@@ -422,10 +423,11 @@ class Trainer:
         info = {}
         if self.schedule.densify_due(step, cfg):
             gen = torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + step)
+            cap = int(self.init_info.get("max_gaussians", cfg.densify.max_gaussians))  # scaled (densify_cap)
             info = g.densify_and_prune(grad_threshold=cfg.densify.grad_threshold,
                                        percent_dense=cfg.densify.percent_dense,
                                        min_opacity=cfg.densify.prune_opacity, max_world_scale=PRUNE_BIG_WORLD,
-                                       max_gaussians=cfg.densify.max_gaussians,
+                                       max_gaussians=cap,
                                        generator=gen if self.device.type == "cpu" else None)
         if self.cull is not None and (step == 0 or (stage == "deform" and self.stage_of(step - 1) == "static") or info):
             self.cull(self.run, step)
