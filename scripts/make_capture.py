@@ -67,7 +67,7 @@ PRESETS = {
                   samples=32, light_hz=2000.0),
     # issue 43: the paper's rig at its real size -- RGB 1080x720 (train and eval cameras), a
     # Vidar-shaped 400x250 spike camera of its own lens (square pixels, the RGB horizontal field of
-    # view), 0.5 s at 20 kHz with the sensor noise below; for benchmarks (tools bench-real), never
+    # view), 0.5 s at 20 kHz with the sensor noise below; for benchmarks (tools time-to-result), never
     # the unit tests
     "real": dict(seconds=0.5, rgb_size=(1080, 720), spike_size=(400, 250), eval_fps=60.0,
                  samples=16, light_hz=1000.0),

@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from ...scene.model import scaled_view
+from .interpolation import resample_area
 
 COARSE_MAX_WIDTH = 540  # half the paper's 1080-px RGB frames
 
@@ -24,8 +25,7 @@ def coarse_item(item: dict, max_width: int = COARSE_MAX_WIDTH) -> dict:
         return item
     out = scaled_view(item, max_width / item["width"])
     h, w = out["height"], out["width"]
-    img = item["image"].permute(0, 3, 1, 2)
-    out["image"] = F.interpolate(img, size=(h, w), mode="area").permute(0, 2, 3, 1).contiguous()
+    out["image"] = resample_area(item["image"], (h, w)).contiguous()
     if "stereo_depth" in item:
         d = item["stereo_depth"][None, None].float()
         m = item["stereo_mask"][None, None].float()
