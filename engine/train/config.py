@@ -123,7 +123,6 @@ class SpikeFlowConfig:
     warm: bool = True                 # each grid instant's flow starts from its neighbour's
     fit: bool = True                  # once per interval, the curves' inner points fitted to the flow
     junctions: str = "all"            # the curves' place at the next RGB instant from the flow: all | born | none
-    junctions_hidden: bool = True     # hidden Gaussians take the nearest moved one's change
 
 
 @dataclass
@@ -219,7 +218,7 @@ FLAT_NAMES = {
     "spike_static_prior": "spike.static_prior", "spike_skip_static": "spike.skip_static",
     "fine_change_gate": "spike.fine_change_gate", "quiet_curves": "spike.quiet_curves",
     "spike_flow_weight": "spike_flow.weight", "spike_flow_warm": "spike_flow.warm", "spike_flow_fit": "spike_flow.fit",
-    "spike_flow_junctions": "spike_flow.junctions", "spike_flow_junctions_hidden": "spike_flow.junctions_hidden",
+    "spike_flow_junctions": "spike_flow.junctions",
     "baseline": "baseline.kind", "baseline_instants": "baseline.instants", "baseline_weight": "baseline.weight",
 }
 

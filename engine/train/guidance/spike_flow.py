@@ -26,7 +26,8 @@ the along-ray component stays with the curves' smoothness (``traj_inner_weight``
 Once per RGB interval (``fit_interval``, ``spike_flow_fit``) the flow also bends the visible
 curves' inner control points by least squares and, with ``spike_flow_junctions`` (on: ``all``),
 puts their place at the interval's right end where the flow says (``flow_junctions``: the train
-cameras' 30 FPS carry misses fast jumps; docs/experiments/flow-junctions.md "The fast scene's ghost").
+cameras' 30 FPS carry misses fast jumps; docs/experiments/flow-junctions.md "The fast scene's ghost"),
+where the RGB frames there agree better with the flow's place than with the carry's (``rgb_vote``).
 
 Flows are computed once per (reference instant, between instant) pair: the between instant
 is rounded to ``spike_flow_steps`` points per RGB interval and the reference is the nearer
@@ -266,8 +267,7 @@ class SpikeFlowSupervision(FlowCache):
         moved = {}
         mode = self.cfg.spike_flow.junctions
         if mode != "none":  # before the inner fit, which starts from the moved curves
-            moved["junctions_ahead"] = self.flow_junctions(model, k, a, b, idx, uv_ref, born_only=mode == "born",
-                                                           extent=extent)
+            moved["junctions_ahead"] = self.flow_junctions(model, k, a, b, idx, uv_ref, born_only=mode == "born")
             # those born at the right end (after the carry) take their place at the left one
             moved["junctions_back"] = self.flow_junctions(model, k, b, a, *self.surface(model, b), born_only=True)
         if idx.numel() == 0:
@@ -320,7 +320,7 @@ class SpikeFlowSupervision(FlowCache):
 
     @torch.no_grad()
     def flow_junctions(self, model: Model4D, k: int, ref: float, other: float, idx: torch.Tensor,
-                       uv_ref: torch.Tensor, born_only: bool = False, extent: float = 0.0) -> dict:
+                       uv_ref: torch.Tensor, born_only: bool = False) -> dict:
         """Put the curves of the Gaussians that are the visible surface at ``ref`` (one end of
         interval ``k``; ``idx``, pixels ``uv_ref``) where the spike view's flow says they are at
         the interval's other end ``other`` (``spike_flow_junctions``; ``born_only``: only those
@@ -329,16 +329,12 @@ class SpikeFlowSupervision(FlowCache):
         ``ref`` and extended linearly to ``other``; the junctions beyond ``other`` hold it.
 
         Why: the train cameras' carry (``traj_carry=flow``) finds the next RGB instant by a
-        30 FPS optical flow that misses the fast scene's jumps (the ball ~55 px per frame;
-        docs/experiments/motion-representation.md "Births that move"), so curves and births stay behind and the
-        object between two
-        RGB instants is a cross-fade of two copies (the ghost). The spike view sees the whole
-        motion at 20 kHz. Depth is the Gaussian's at ``ref``: the curve's own depth at ``other``
-        (the stereo-lifted carry) measured worse (docs/experiments/flow-junctions.md). With
-        ``spike_flow_junctions_hidden``
-        (``extent`` > 0, not ``born_only``) the Gaussians it does not see take the change of the
-        nearest moved one within ``traj_carry_hidden`` x ``extent`` (the back of a spinning ball),
-        except those born at ``other``. Returns counts for run.json."""
+        30 FPS optical flow that misses the fast scene's jumps (the ball ~55 px per frame), so
+        the object between two RGB instants is a cross-fade of two copies (the ghost). Depth is
+        the Gaussian's at ``ref`` (the curve's own at ``other`` measured worse). Only what the
+        spike view sees moves: handing the change to hidden neighbours moved the static world
+        near small objects (random scenes up to -1 dB; docs/experiments/flow-junctions.md
+        "Random scenes"). Returns counts for run.json; ``vetoed``: moves ``rgb_vote`` refused."""
         info = {"surface": int(idx.numel()), "moved": 0}
         if idx.numel() == 0:
             return info
@@ -363,6 +359,12 @@ class SpikeFlowSupervision(FlowCache):
         x = subset_positions(model, ref, idx)
         _, z = project(x, self.viewmat, self.K)
         d = (lift(uv + f, z, self.viewmat, self.K) - x) / frac
+        # the RGB frames at ``other`` decide between the flow's place and the curve's own
+        better = self.rgb_vote(x, x + d, subset_positions(model, other, idx), ref, other)
+        info["vetoed"] = int((~better).sum())
+        idx, d = idx[better], d[better]
+        if idx.numel() == 0:
+            return info
         knots = model.trajectory["knots"]
         seg, _ = traj.segment_of(knots, 0.5 * (self.times[k] + self.times[k + 1]))
         tm = getattr(g, TRAJ_MEANS).data
@@ -374,28 +376,53 @@ class SpikeFlowSupervision(FlowCache):
         for j in moved:
             tm[idx, 3 * j] = new
         info["moved"] = int(idx.numel())
-        radius = float(scene_flow.CARRY_HIDDEN) * extent
-        if self.cfg.spike_flow.junctions_hidden and not born_only and radius > 0:
-            # what the spike view does not see of a moved part (its back, its inside) moves with it
-            pos = (g.means + traj.evaluate(getattr(g, TRAJ_MEANS), knots, ref)).cpu().numpy()
-            full = np.zeros_like(pos)
-            full[idx.cpu().numpy()] = d.cpu().numpy()
-            decided = np.zeros(len(pos), dtype=bool)
-            decided[idx.cpu().numpy()] = True
-            static = model.effective_static_mask()
-            if static is not None:
-                decided |= static.cpu().numpy()  # still surfaces hand over no motion
-            full, taken = propagate_to_hidden(pos, full, decided, radius)
-            taken &= np.abs(full).sum(1) > 0
-            if TIME_CENTER in g.extra_lrs:  # born at ``other``: already there
-                tc = getattr(g, TIME_CENTER).detach()[:, 0].cpu()
-                taken &= ~(born_mask(g).cpu() & ((tc - other).abs() < (tc - ref).abs())).numpy()
-            h = torch.from_numpy(np.nonzero(taken)[0]).to(tm.device)
-            dh = torch.from_numpy(full[taken]).to(tm)
-            for j in moved:
-                tm[h, 3 * j] = tm[h, 3 * j_ref] + dh
-            info["hidden"] = int(taken.sum())
         return info
+
+    def rgb_vote(self, x_ref: torch.Tensor, x_flow: torch.Tensor, x_curve: torch.Tensor, ref: float,
+                 other: float) -> torch.Tensor:
+        """[M] bool: where the train cameras' RGB frames at ``other`` agree better with the
+        spike flow's place ``x_flow`` than with the curve's current place ``x_curve`` (from the
+        train cameras' carry). Each Gaussian's 3x3 patch in the frame at ``ref`` (around its
+        projection ``x_ref``) is compared, L1 summed over the cameras that have frames at both
+        instants, with the patches at the two candidates in the frame at ``other``.
+
+        Why: the spike flow finds jumps the 30 FPS carry misses (the fast scene loses 0.65 dB
+        without the flow's junctions), but where the carry was right an ambiguous flow moves
+        the junctions off what the RGB frames show (docs/experiments/flow-junctions.md
+        "Random scenes: the hidden hand-over removed, the RGB frames' vote added")."""
+        pairs = {}
+        for it in self.run.items:
+            if it.get("synthetic"):
+                continue
+            for key, t in (("ref", ref), ("other", other)):
+                if abs(float(it["time"]) - t) < 1e-6:
+                    pairs.setdefault(it["camera"], {})[key] = it
+        off = torch.stack(torch.meshgrid(torch.arange(-1.0, 2.0), torch.arange(-1.0, 2.0), indexing="ij"), -1)
+        off = off.reshape(1, 9, 2).to(x_ref)
+        err_flow = torch.zeros(x_ref.shape[0], dtype=x_ref.dtype, device=x_ref.device)
+        err_curve = torch.zeros_like(err_flow)
+        seen = torch.zeros_like(err_flow, dtype=torch.bool)
+        for cam in sorted(pairs):
+            if len(pairs[cam]) < 2:
+                continue
+            a, b = pairs[cam]["ref"], pairs[cam]["other"]
+            vm, K = a["viewmat"][0].to(x_ref), a["K"][0].to(x_ref)
+            w, h = int(a["width"]), int(a["height"])
+
+            def patches(img, pts):
+                uv, z = project(pts, vm, K)
+                inside = (z > 0) & (uv[:, 0] >= 1) & (uv[:, 0] < w - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < h - 1)
+                vals = sample_map(img[0].to(x_ref), (uv[:, None, :] + off).reshape(-1, 2))
+                return vals.reshape(-1, 9 * vals.shape[-1]), inside
+
+            p_ref, in_ref = patches(a["image"], x_ref)
+            p_flow, in_flow = patches(b["image"], x_flow)
+            p_curve, in_curve = patches(b["image"], x_curve)
+            use = in_ref & in_flow & in_curve
+            err_flow += torch.where(use, (p_flow - p_ref).abs().mean(-1), 0.0)
+            err_curve += torch.where(use, (p_curve - p_ref).abs().mean(-1), 0.0)
+            seen |= use
+        return ~seen | (err_flow < err_curve)
 
     def after_step(self, tr, step, item, meta) -> None:
         """Post-step hook: the flows of the intervals the next step may admit queued
