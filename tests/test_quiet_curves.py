@@ -200,3 +200,39 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     tr.parts["spike_guidance"] = object()
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # curves only
 
+
+
+@pytest.mark.slow
+def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_capture, tmp_path):
+    """Through ``train``: the spike terms bend rotation curves during training; a finished run's
+    result has every rotation curve's inner points at zero (run.json counts them) while position
+    bends stay; a cancelled run's checkpoint, what a resume starts from, keeps them."""
+    import json
+    import threading
+
+    from engine.scene.model import load_run
+    from engine.train import train
+
+    def curves(run):
+        g = load_run(run).model.gaussians
+        return getattr(g, TRAJ_MEANS).detach(), getattr(g, TRAJ_QUATS).detach()
+
+    over = {**_TINY, "iterations": 12}
+    assert train(demo_capture, tmp_path / "done", preset="fast", overrides=over, resume=False)["status"] == "finished"
+    p, q = curves(tmp_path / "done")
+    assert q.shape[1] > 3 and not q[:, 1::3].any() and not q[:, 2::3].any() and q[:, 0::3].any()
+    assert p[:, 1::3].any()  # where the spike view changed, positions still bend
+    info = json.loads((tmp_path / "done" / "run.json").read_text())["quiet_curves"]
+    assert info["rotation_bends_flattened"] > 0
+
+    cancel = threading.Event()
+
+    def progress(p):
+        if p["step"] >= over["iterations"] - 1:
+            cancel.set()
+    s = train(demo_capture, tmp_path / "cut", preset="fast", overrides=over, resume=False, progress=progress,
+              cancel=cancel)
+    assert s["status"] == "cancelled"
+    _, q = curves(tmp_path / "cut")
+    assert q[:, 1::3].any() or q[:, 2::3].any()
+    assert "quiet_curves" not in json.loads((tmp_path / "cut" / "run.json").read_text())

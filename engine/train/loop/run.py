@@ -291,6 +291,9 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     finally:  # the spike-flow term's prefetch worker: what it has not started is not needed now
         close_flow_worker(trainer.run)
     train_seconds = prior_seconds + time.perf_counter() - t_start
+    quiet = trainer.run.part("quiet_curves") if status == "finished" else None
+    if quiet is not None:  # the result keeps no rotation bend (engine.train.guidance.quiet_curves)
+        update_run_json(run_dir, quiet_curves=quiet.finish(trainer.model))
     snapshot(step, status, train_seconds)
     skips = trainer.skip_summary()
     if trainer.carry_info:  # trajectories carried by scene flow (issue 11)
