@@ -205,8 +205,9 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
 @pytest.mark.slow
 def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_capture, tmp_path):
     """Through ``train``: the spike terms bend rotation curves during training; a finished run's
-    result has every rotation curve's inner points at zero (run.json counts them) while position
-    bends stay; a cancelled run's checkpoint, what a resume starts from, keeps them."""
+    result has every rotation curve's inner points at zero (run.json counts them) and no position
+    bend smaller than its Gaussian's largest axis, while larger position bends stay; a cancelled
+    run's checkpoint, what a resume starts from, keeps them all."""
     import json
     import threading
 
@@ -217,13 +218,23 @@ def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_cap
         g = load_run(run).model.gaussians
         return getattr(g, TRAJ_MEANS).detach(), getattr(g, TRAJ_QUATS).detach()
 
+    def bends(run):  # [N, segments]: each segment's largest position bend, and [N] largest axes
+        g = load_run(run).model.gaussians
+        p = getattr(g, TRAJ_MEANS).detach()
+        segs = (p.shape[1] - 1) // 3
+        return p[:, :3 * segs].reshape(p.shape[0], segs, 3, 3)[:, :, 1:].norm(dim=-1).amax(-1), \
+            g.log_scales.detach().exp().amax(-1)
+
     over = {**_TINY, "iterations": 12}
     assert train(demo_capture, tmp_path / "done", preset="fast", overrides=over, resume=False)["status"] == "finished"
     p, q = curves(tmp_path / "done")
     assert q.shape[1] > 3 and not q[:, 1::3].any() and not q[:, 2::3].any() and q[:, 0::3].any()
     assert p[:, 1::3].any()  # where the spike view changed, positions still bend
+    bend, size = bends(tmp_path / "done")
+    assert ((bend == 0) | (bend >= size[:, None])).all()
     info = json.loads((tmp_path / "done" / "run.json").read_text())["quiet_curves"]
-    assert info["rotation_bends_flattened"] > 0
+    assert info["rotation_bends_flattened"] > 0 and info["small_bends_flattened"] > 0
+    assert info["position_bends_kept"] == int((bend > 0).sum()) > 0
 
     cancel = threading.Event()
 
@@ -235,4 +246,6 @@ def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_cap
     assert s["status"] == "cancelled"
     _, q = curves(tmp_path / "cut")
     assert q[:, 1::3].any() or q[:, 2::3].any()
+    bend, size = bends(tmp_path / "cut")
+    assert ((bend > 0) & (bend < size[:, None])).any()
     assert "quiet_curves" not in json.loads((tmp_path / "cut" / "run.json").read_text())
