@@ -201,7 +201,6 @@ def test_switch_is_a_config_field_and_needs_the_spike_guidance():
     assert quiet_curves_factory(tr) == [] and tr.post_step_hooks == []  # curves only
 
 
-
 @pytest.mark.slow
 def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_capture, tmp_path):
     """Through ``train``: the spike terms bend rotation curves during training; a finished run's

@@ -70,7 +70,7 @@ from .spike_guidance import CHANGE_BLOCK, spike_stream_info
 DILATE = 1
 REFRESH = 50
 
-__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "zero_quiet_columns",
+__all__ = ["quiet_segments", "segment_intervals", "inner_keep", "zero_inner", "segment_bends", "zero_quiet_columns",
            "QuietCurves", "quiet_curves_factory", "warmup"]
 
 KERNELS = LazyKernels(__package__, "_quiet_kernels")
@@ -138,6 +138,13 @@ def zero_inner(params: torch.Tensor, quiet: torch.Tensor, keep: torch.Tensor | N
     where ``quiet`` [N, F-1] holds for segment ``k`` (in place; ``keep``: its
     :func:`inner_keep`, when already built)."""
     params.data.mul_(inner_keep(quiet) if keep is None else keep)
+
+
+def segment_bends(params: torch.Tensor) -> torch.Tensor:
+    """[N, F-1]: the larger norm of segment ``k``'s two inner points ``3k+1, 3k+2`` of ``params``
+    [N, K, C] (how far the curve bends off its smooth spline there; 0: not at all)."""
+    n, segs = params.shape[0], (params.shape[1] - 1) // 3
+    return params.detach()[:, :3 * segs].reshape(n, segs, 3, -1)[:, :, 1:].norm(dim=-1).amax(-1)
 
 
 @torch.no_grad()
@@ -261,16 +268,12 @@ class QuietCurves:
         and "Small bends"); what a cancelled run saves to resume from keeps them."""
         g = model.gaussians
         g.settle()  # a lazy optimiser's skipped moves land first
-        q = getattr(g, TRAJ_QUATS).data
-        bent = (q[:, 1::3].abs().amax((1, 2)) > 0) | (q[:, 2::3].abs().amax((1, 2)) > 0)
-        q[:, 1::3] = 0.0
-        q[:, 2::3] = 0.0
-        p = getattr(g, TRAJ_MEANS).data
-        n, segs = p.shape[0], (p.shape[1] - 1) // 3
-        inner = p[:, :3 * segs].view(n, segs, 3, 3)[:, :, 1:]  # [N, segments, 2, 3], a view of p
-        bend = inner.norm(dim=-1).amax(-1)
+        rotations, positions = getattr(g, TRAJ_QUATS), getattr(g, TRAJ_MEANS)
+        bent = segment_bends(rotations).amax(1) > 0
+        bend = segment_bends(positions)
         small = (bend > 0) & (bend < g.log_scales.detach().exp().amax(-1)[:, None])
-        inner[small] = 0.0
+        zero_inner(rotations, torch.ones_like(small))
+        zero_inner(positions, small)
         return {"rotation_bends_flattened": int(bent.sum()), "small_bends_flattened": int(small.sum()),
                 "position_bends_kept": int((bend > 0).sum() - small.sum())}
 
