@@ -4,15 +4,21 @@ baseline of ``python -m engine bench-raster``.
 
 Binning is vectorised numpy; tiles are composited in chunks (tiles sorted by list length
 so that padding stays small) with the same ``composite_lists`` as the dense reference.
+Autograd keeps every chunk's intermediates (~110 bytes per pixel x list entry): the paper's
+1080x720 frames with 300k Gaussians are 2e9 such entries, over 24 GiB, so above
+``GRAPH_ELEMENTS`` each chunk is checkpointed (its forward recomputed in the backward) and the
+graph holds one chunk at a time; below it nothing changes (issue 43).
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
+from torch.utils.checkpoint import checkpoint
 
 from .reference import composite_lists
 
 CHUNK_ELEMENTS = 1 << 22  # pixels x list entries per chunk (bounds autograd memory)
+GRAPH_ELEMENTS = 1 << 25  # pixels x list entries of a whole render kept by autograd (~3.7 GB)
 
 
 def bin_numpy(means2d: np.ndarray, radii_xy: np.ndarray, depths: np.ndarray, width: int,
@@ -48,6 +54,11 @@ def bin_numpy(means2d: np.ndarray, radii_xy: np.ndarray, depths: np.ndarray, wid
     return offsets, ids, tiles_x, tiles_y
 
 
+def _composite_chunk(pix, m_flat, c_flat, o_flat, f_flat, gidx, valid, alpha_max):
+    """One chunk of tiles: gather its lists from the flat tensors and composite them."""
+    return composite_lists(pix, m_flat[gidx], c_flat[gidx], o_flat[gidx], f_flat[gidx], valid, alpha_max=alpha_max)
+
+
 def composite_tiles_torch(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
                           feats: torch.Tensor, depths: torch.Tensor, radii_xy: torch.Tensor,
                           width: int, height: int, alpha_max: float = 0.99, tile_size: int = 8
@@ -65,6 +76,7 @@ def composite_tiles_torch(means2d: torch.Tensor, conics: torch.Tensor, opacities
     o_flat = opacities.reshape(C * N)
     f_flat = feats.reshape(C * N, D)
     counts = np.diff(offsets)
+    recompute = torch.is_grad_enabled() and ts2 * int(ids.shape[0]) > GRAPH_ELEMENTS
     tiles = np.flatnonzero(counts)
     tiles = tiles[np.argsort(counts[tiles], kind="stable")]
     # pixel coordinates of each slot of a tile
@@ -93,8 +105,8 @@ def composite_tiles_torch(means2d: torch.Tensor, conics: torch.Tensor, opacities
         gy = ty[:, None] * tile_size + py[None]
         inside = (gx < width) & (gy < height)
         pix = torch.from_numpy(np.stack([gx + 0.5, gy + 0.5], -1)).to(dev, dt)
-        f, a = composite_lists(pix, m_flat[gidx], c_flat[gidx], o_flat[gidx], f_flat[gidx],
-                               torch.from_numpy(valid).to(dev), alpha_max=alpha_max)
+        args = (pix, m_flat, c_flat, o_flat, f_flat, gidx, torch.from_numpy(valid).to(dev), alpha_max)
+        f, a = checkpoint(_composite_chunk, *args, use_reentrant=False) if recompute else _composite_chunk(*args)
         ins = torch.from_numpy(inside.reshape(-1)).to(dev)
         flat = torch.from_numpy((cam[:, None] * height * width + gy * width + gx).reshape(-1)).to(dev)
         idx_parts.append(flat[ins])
