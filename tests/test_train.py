@@ -689,6 +689,34 @@ def test_a_budget_run_the_cap_binds_ends_early_at_the_cap(tiny_capture, tmp_path
     assert ended_note({**s, "ended_by": "budget"}) is None
 
 
+def test_a_budget_run_that_spends_its_time_preparing_says_so(tiny_capture, tmp_path, monkeypatch):
+    """The budget counts the preparation (stereo, the initial Gaussians): where that takes most of it, the run
+    trains what is left and run.json, the command line's note and the summary say how much went into preparing
+    (the Interpolate baseline on a 0.3 s 320x240 capture: 146 s of stereo at 91 instants in a 120 s budget)."""
+    import time as _time
+
+    def slow_probe(trainer):
+        _time.sleep(1.5)
+        return 0.002, 0.002
+
+    monkeypatch.setattr(run_mod, "measure_step_seconds", slow_probe)
+
+    def step(self, i):
+        _time.sleep(0.002)
+        return {"loss": 0.0, "psnr": 0.0, "stage": self.stage_of(i), "losses": {}, "densify": {}}
+
+    monkeypatch.setattr(trainer_mod.Trainer, "step", step)
+    s = train(tiny_capture, tmp_path / "run", seconds=2.0, overrides={"init": "ply", "iterations": 400})
+    est = read_run_json(tmp_path / "run")["budget_estimates"]
+    assert s["status"] == "finished" and s["ended_by"] == "budget"
+    assert est["preparation_s"] >= 1.5 and est["preparation_share"] >= 0.75
+    from engine.cli.train import ended_note
+    note = ended_note(s)
+    assert note.startswith("warning: preparing the capture took") and f"{est['preparation_share']:.0%}" in note
+    # a budget mostly trained: no note
+    assert ended_note({**s, "budget_estimates": {**est, "preparation_share": 0.2}}) is None
+
+
 @pytest.mark.parametrize("device", ["cpu", "cuda"])
 def test_warm_up_compiles_the_host_kernels_on_any_device(monkeypatch, device):
     """On a GPU the admissions' flow and neighbour search still run numba kernels on host

@@ -162,7 +162,10 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             trainer.total_steps = steps_for_budget(seconds, t_s, t_d, cfg, reserve_s=elapsed + 1.0)
             budget_estimates = {"probe": {"static_step_s": round(t_s, 5), "deform_step_s": round(t_d, 5),
                                           "total_steps": trainer.total_steps}, "measured": None,
-                                "step_cap": step_cap(cfg)}  # a run it binds ends before its budget
+                                "step_cap": step_cap(cfg),  # a run it binds ends before its budget
+                                # before the first step: a share near 1 leaves nothing to train (the notes say so)
+                                "preparation_s": round(elapsed, 3),
+                                "preparation_share": round(elapsed / float(seconds), 3)}
     total = trainer.total_steps
     budget_end = (t_start + float(seconds)) if seconds is not None else None
     skip_notes = {}
