@@ -205,8 +205,8 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
         msgs.append(f"ended at the step cap after {summary.get('step')} steps, {summary['budget_used']:.0%} of the "
                     "time budget (more steps cost the new view)")
     prep = summary.get("budget_estimates") or {}
-    if summary.get("ended_by") == "budget" and (prep.get("preparation_share") or 0.0) >= 0.5:
-        msgs.append(f"preparing the capture took {prep.get('preparation_s', 0.0):.0f} s, "
+    if summary.get("ended_by") == "budget" and prep.get("preparation_heavy"):
+        msgs.append(f"preparing the capture took {prep['preparation_s']:.0f} s, "
                     f"{prep['preparation_share']:.0%} of the time budget; {summary.get('step')} steps trained "
                     "(raise the budget)")
     if res.get("metrics_error"):

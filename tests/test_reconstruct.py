@@ -368,6 +368,7 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     assert "step cap after 80 steps, 14% of the time budget" in r.message, r.message
     # one whose budget went mostly into preparing the capture says that instead
     summary.update(step=3, total_steps=20, ended_by="budget", budget_used=1.3,
-                   budget_estimates={"preparation_s": 146.0, "preparation_share": 1.22})
+                   budget_estimates={"preparation_s": 146.0, "preparation_share": 1.22,
+                                                     "preparation_heavy": True})
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
     assert "preparing the capture took 146 s, 122% of the time budget; 3 steps trained" in r.message, r.message

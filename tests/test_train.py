@@ -709,12 +709,12 @@ def test_a_budget_run_that_spends_its_time_preparing_says_so(tiny_capture, tmp_p
     s = train(tiny_capture, tmp_path / "run", seconds=2.0, overrides={"init": "ply", "iterations": 400})
     est = read_run_json(tmp_path / "run")["budget_estimates"]
     assert s["status"] == "finished" and s["ended_by"] == "budget"
-    assert est["preparation_s"] >= 1.5 and est["preparation_share"] >= 0.75
+    assert est["preparation_s"] >= 1.5 and est["preparation_share"] >= 0.75 and est["preparation_heavy"] is True
     from engine.cli.train import ended_note
     note = ended_note(s)
     assert note.startswith("warning: preparing the capture took") and f"{est['preparation_share']:.0%}" in note
     # a budget mostly trained: no note
-    assert ended_note({**s, "budget_estimates": {**est, "preparation_share": 0.2}}) is None
+    assert ended_note({**s, "budget_estimates": {**est, "preparation_share": 0.2, "preparation_heavy": False}}) is None
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda"])

@@ -117,19 +117,15 @@ def main(args) -> int:
     return 0 if summary["status"] in ("finished", "cancelled") else 1
 
 
-PREPARATION_SHARE = 0.5  # of a --seconds budget spent before the first step: the run says it trained little
-
-
 def ended_note(summary: dict) -> str | None:
     """One line for a budget run that did not use its time (the step cap or convergence) or that spent most
-    of it preparing (stereo, initial Gaussians: ``PREPARATION_SHARE`` of the budget or more), else None."""
+    of it preparing (stereo, initial Gaussians; run.json ``budget_estimates.preparation_heavy``), else None."""
     used, steps = summary.get("budget_used"), summary.get("step")
     est = summary.get("budget_estimates") or {}
-    share = est.get("preparation_share")
-    if share is not None and share >= PREPARATION_SHARE and summary.get("ended_by") == "budget":
-        return (f"warning: preparing the capture took {est.get('preparation_s', 0.0):.0f} s, {share:.0%} of the "
-                f"--seconds budget; {steps} steps trained in what was left: give --seconds well above the "
-                "preparation time")
+    if est.get("preparation_heavy") and summary.get("ended_by") == "budget":
+        return (f"warning: preparing the capture took {est['preparation_s']:.0f} s, "
+                f"{est['preparation_share']:.0%} of the --seconds budget; {steps} steps trained in what was left: "
+                "give --seconds well above the preparation time")
     if summary.get("ended_by") == "step_cap":
         return (f"note: ended at the step cap after {steps} steps, {used:.0%} of the budget: more steps cost the new "
                 "view on the scenes we measured (schedule.step_cap; 0 turns it off)")

@@ -132,6 +132,7 @@ def reestimate_steps(trainer, done: int, step_seconds: float, probe: dict, loop_
 
 
 DEFORM_REESTIMATE_EVERY = 0.1  # in the deformation stage: re-estimate after every this share of the total
+PREPARATION_SHARE = 0.5  # of a budget spent before the first step: the run says it trained little
 END_RESERVE_S = 0.15  # the final checkpoint and run.json after the last step (~0.1 s on the demo)
 
 

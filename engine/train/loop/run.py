@@ -29,6 +29,7 @@ from ..guidance.spike_flow import close_flow_worker
 from .budget import (
     DEFORM_REESTIMATE_EVERY,
     END_RESERVE_S,
+    PREPARATION_SHARE,
     measure_step_seconds,
     reestimate_at,
     reestimate_deform_steps,
@@ -163,9 +164,11 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             budget_estimates = {"probe": {"static_step_s": round(t_s, 5), "deform_step_s": round(t_d, 5),
                                           "total_steps": trainer.total_steps}, "measured": None,
                                 "step_cap": step_cap(cfg),  # a run it binds ends before its budget
-                                # before the first step: a share near 1 leaves nothing to train (the notes say so)
+                                # before the first step: a share near 1 leaves nothing to train; "preparation_heavy"
+                                # is the one decision the command line's and the panel's notes read
                                 "preparation_s": round(elapsed, 3),
-                                "preparation_share": round(elapsed / float(seconds), 3)}
+                                "preparation_share": round(elapsed / float(seconds), 3),
+                                "preparation_heavy": elapsed >= PREPARATION_SHARE * float(seconds)}
     total = trainer.total_steps
     budget_end = (t_start + float(seconds)) if seconds is not None else None
     skip_notes = {}
