@@ -44,6 +44,7 @@ class GaussianConfig:
     lr_opacities: float = 5e-2
     lr_sh_dc: float = 2.5e-3          # the higher SH bands learn at SH_REST_LR_RATIO of it
     init_opacity: float = 0.1
+    drop_rate: float = 0.1            # share of Gaussians a render leaves out while densifying (DropGaussian; 0: off)
     # exact (FusedAdam: torch's Adam bit for bit) | selective (only rows and curve columns a step
     # touched) | lazy (the curves' touched columns, skipped steps caught up) | auto (lazy for long curves)
     optimizer: str = "auto"

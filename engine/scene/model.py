@@ -110,6 +110,8 @@ class Model4D(nn.Module):
         # per-Gaussian trajectories (issue 11): {"knots": [F] seconds} when the Gaussians
         # carry TRAJ_MEANS / TRAJ_QUATS; applied before the deformation field (a residual)
         self.trajectory: dict | None = None
+        # engine.scene.dropout.GaussianDropout while a training step renders (set by the trainer)
+        self.dropout = None
 
     def add_trajectories(self, knots, lr_means: float, lr_quats: float) -> None:
         """Give every Gaussian a (static) trajectory over ``knots`` (the RGB instants)."""
@@ -196,8 +198,11 @@ class Model4D(nn.Module):
             attrs = {k: torch.where(keep.reshape(-1, *([1] * (v.dim() - 1))), v, v.detach()) for k, v in attrs.items()}
         bg = self.background if background is None else background
         bgs = torch.as_tensor(bg, dtype=torch.float32, device=attrs["means"].device).reshape(1, 3)
+        opacities = attrs["opacities"]
+        if self.dropout is not None and torch.is_grad_enabled():
+            opacities = self.dropout(opacities)
         rgb, alpha, meta = rasterization(
-            attrs["means"], attrs["quats"], attrs["scales"], attrs["opacities"], attrs["colors"],
+            attrs["means"], attrs["quats"], attrs["scales"], opacities, attrs["colors"],
             vt["viewmat"], vt["K"], vt["width"], vt["height"], backgrounds=bgs, render_depth=render_depth,
             near_plane=self.near_plane, backend=backend)
         note = getattr(self.gaussians.optimizer, "note_visible", None)  # engine.scene.selective_adam

@@ -33,6 +33,7 @@ from ...scene.deformation import (
     TIME_CELLS_PER_FRAME_GUIDED,
     make_field,
 )
+from ...scene.dropout import GaussianDropout
 from ...scene.gaussians import GaussianModel
 from ...scene.model import TRAJ_MEANS, TRAJ_QUATS, Model4D, near_plane_for_extent, view_tensors
 from ...scene.trajectory import extrapolate_junctions, gradient_sink
@@ -383,6 +384,8 @@ class Trainer:
             while g.active_sh_degree < want:
                 g.oneup_sh_degree()
         self._update_lrs(step)
+        model.dropout = GaussianDropout.for_step(cfg.gaussians.drop_rate, self.seed, step,  # this step's renders
+                                                 until=cfg.densify.stop * self.total_steps)
         if stage == "deform" and self.cfg.schedule.time_curriculum > 0:
             self._carry_forward(self.time_window(step))
         item = self.items[self.frame_index(step)]
@@ -436,6 +439,7 @@ class Trainer:
         with torch.no_grad():
             mse = float(((rgb.detach().clamp(0, 1) - item["image"]) ** 2).mean())
         self.last_losses = losses
+        model.dropout = None
         return {"loss": float(total.detach()), "psnr": -10.0 * math.log10(max(mse, 1e-10)), "stage": stage,
                 "losses": losses, "densify": info}
 
