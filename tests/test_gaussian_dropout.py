@@ -22,8 +22,8 @@ def test_masks_are_seeded_by_step_and_keep_the_expected_opacity():
     torch.testing.assert_close(a[~dropped], o[~dropped] / 0.8)
     assert abs(float(a.mean() / o.mean()) - 1.0) < 0.02                  # the expected opacity is kept
     assert GaussianDropout.for_step(0.0, 3, 7) is None
-    assert GaussianDropout.for_step(0.1, 3, 6, until=7.0) is not None
-    assert GaussianDropout.for_step(0.1, 3, 7, until=7.0) is None     # the trainer: densify.stop x steps
+    assert GaussianDropout.for_step(0.1, 3, 6, densifying=True) is not None
+    assert GaussianDropout.for_step(0.1, 3, 7, densifying=False) is None  # the trainer: the densify window
     with pytest.raises(ValueError, match="drop_rate"):
         GaussianDropout(1.0, 0, 0)
 

@@ -10,8 +10,6 @@ Evaluation and export renders (no gradient) keep every Gaussian.
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 # the step's seed: a resumed run draws the same masks as an uninterrupted one
@@ -28,10 +26,10 @@ class GaussianDropout:
         self.generator = torch.Generator(device="cpu").manual_seed(int(seed) * _STEP_SEED + int(step))
 
     @classmethod
-    def for_step(cls, rate: float, seed: int, step: int, until: float = math.inf) -> "GaussianDropout | None":
-        """The step's dropout, or None when ``rate`` is 0 or ``step`` >= ``until`` (the trainer: where
-        densification stops; the last steps train every Gaussian together, which keeps LPIPS)."""
-        return cls(rate, seed, step) if rate > 0 and step < until else None
+    def for_step(cls, rate: float, seed: int, step: int, densifying: bool = True) -> "GaussianDropout | None":
+        """The step's dropout, or None when ``rate`` is 0 or the step is past the densification window
+        (the schedule's, virtual steps included: the last steps train every Gaussian together, which keeps LPIPS)."""
+        return cls(rate, seed, step) if rate > 0 and densifying else None
 
     def __call__(self, opacities: torch.Tensor) -> torch.Tensor:
         """opacities [N] -> the same with a share ``rate`` zeroed and the rest / (1 - rate)."""

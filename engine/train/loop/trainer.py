@@ -384,8 +384,8 @@ class Trainer:
             while g.active_sh_degree < want:
                 g.oneup_sh_degree()
         self._update_lrs(step)
-        model.dropout = GaussianDropout.for_step(cfg.gaussians.drop_rate, self.seed, step,  # this step's renders
-                                                 until=cfg.densify.stop * self.total_steps)
+        dense = self.schedule.in_densify_window(step, cfg)  # densification statistics, and this step's dropout
+        model.dropout = GaussianDropout.for_step(cfg.gaussians.drop_rate, self.seed, step, densifying=dense)
         if stage == "deform" and self.cfg.schedule.time_curriculum > 0:
             self._carry_forward(self.time_window(step))
         item = self.items[self.frame_index(step)]
@@ -413,7 +413,6 @@ class Trainer:
             total.backward()
 
         # densification statistics and schedule
-        dense = self.schedule.in_densify_window(step, cfg)
         if dense and means2d is not None and means2d.grad is not None:
             g.add_densification_stats(means2d.grad, meta["radii"], item["width"], item["height"])
         g.optimizer.step()
