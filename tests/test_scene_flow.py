@@ -70,6 +70,31 @@ def test_hidden_gaussians_follow_their_nearest_decided_neighbour():
     np.testing.assert_allclose(out[4], 0.0)
 
 
+def test_still_surfaces_hold_moving_ones_move_the_rest_fall_back_to_velocity():
+    """The carry's decision (junction_moves): a Gaussian a camera sees as a still surface holds
+    (delta 0, placed) instead of being left to constant velocity, which compounded each instant's
+    noise into a drift of the static world; a camera that sees it move wins over one that sees
+    it still; hidden ones take a moved neighbour's delta; the rest fall back."""
+    from engine.train.motion.scene_flow import junction_moves
+
+    pos = np.array([[0.0, 0, 0],   # 0: moves in camera 0
+                    [1.0, 0, 0],   # 1: a still surface in camera 0, nowhere carried: holds
+                    [0.01, 0, 0],  # 2: hidden near 0: takes its move
+                    [1.01, 0, 0],  # 3: hidden near the still 1: velocity fallback, as before
+                    [5.0, 0, 0],   # 4: far from everything: velocity fallback
+                    [3.0, 0, 0]], np.float32)  # 5: still in camera 0, moves in camera 1: moves
+    moved = pos + np.float32(0.2)
+    cam0 = (moved, np.array([1, 0, 0, 0, 0, 0], bool), np.array([0, 1, 0, 0, 0, 1], bool))
+    cam1 = (moved, np.array([0, 0, 0, 0, 0, 1], bool), np.zeros(6, bool))
+    delta, placed, held = junction_moves(pos, [cam0, cam1], hidden_radius=0.1)
+    assert placed.tolist() == [True, True, True, False, False, True]
+    assert held.tolist() == [False, True, False, False, False, False]
+    np.testing.assert_allclose(delta[[0, 2, 5]], 0.2, atol=1e-6)
+    np.testing.assert_array_equal(delta[1], 0.0)
+    _, placed, _ = junction_moves(pos, [cam0, cam1], hidden_radius=0.0)  # no hand-over
+    assert placed.tolist() == [True, True, False, False, False, True]
+
+
 def test_image_flow_rejects_an_unknown_method():
     a = np.zeros((8, 8, 3), np.float32)
     with pytest.raises(ValueError, match="unknown optical flow method 'rift'"):

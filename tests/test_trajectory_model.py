@@ -120,6 +120,7 @@ def test_trainer_trains_trajectories_end_to_end(demo_capture, tmp_path, motion, 
     if carry == "flow":  # one record per admitted RGB instant; the demo's moving objects get carried
         rec = info["trajectory_carry"]
         assert len(rec) >= 2 and all(r["total"] > 0 for r in rec) and sum(r["carried"] for r in rec) > 0
+        assert sum(r["held"] for r in rec) > 0  # the still background holds its place
     else:
         assert "trajectory_carry" not in info
     scene = load_run(tmp_path / "run")

@@ -10,8 +10,9 @@ along the flow to ``t_b`` and lifts it with the stereo depth there::
 
     x_b = backproject(view, uv_a + flow_ab(uv_a), depth_b(uv_a + flow_ab(uv_a)))
 
-Gaussians that are hidden, outside the image, on unconfident depth or that do not move
-(|flow| below ``min_flow_px``) are left to the caller's fallback (constant velocity).
+Gaussians that do not move (|flow| below ``min_flow_px``) hold (:func:`junction_moves`);
+those hidden, outside the image or on unconfident depth are left to the caller's fallback
+(constant velocity).
 Shapes: positions [N, 3] (world), images [H, W, 3] float, depth maps [H, W] (camera z,
 the stereo's planar depth) with bool confidence masks [H, W].
 """
@@ -30,7 +31,7 @@ from ..frames.interpolation import lk_flow
 from .nearest import nearest_within
 
 __all__ = ["dense_flow", "image_flow", "carry_by_flow", "backproject_pixels", "propagate_to_hidden",
-           "propagate_to_hidden_dense", "carry_trajectories", "frame_image"]
+           "propagate_to_hidden_dense", "junction_moves", "carry_trajectories", "frame_image"]
 
 
 def _grey8(img: np.ndarray) -> np.ndarray:
@@ -239,38 +240,60 @@ def frame_image(run, frame) -> np.ndarray:
     return np.asarray(frame.load_rgb(), np.float32)[..., :3]
 
 
+def junction_moves(positions: np.ndarray, per_camera,
+                   hidden_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which Gaussians the carry places at the next RGB instant, and by how much.
+
+    ``per_camera``: one ``(new positions, carried, still)`` of :func:`carry_by_flow` per train
+    camera, in order (the first camera that carries a Gaussian decides its move). A Gaussian
+    that a camera sees as a still surface (its flow under ``min_flow_px``) and no camera
+    carries *holds* (delta 0): continuing its last segment's velocity compounded each
+    instant's fitting noise into a drift of the static world (seed 154, RGB-only, 1000 steps:
+    the median long-lived Gaussian 4 cm from its first junction at the last one;
+    docs/experiments/carry-holds-still-surfaces.md). Hidden Gaussians take the move of their
+    nearest decided neighbour within ``hidden_radius`` (world units; 0: off) when it moved.
+    Returns (delta [N, 3], placed [N] bool, held [N] bool); rows not placed are left to the
+    caller's constant-velocity fallback."""
+    pos = np.asarray(positions, np.float32)
+    todo = np.ones(len(pos), dtype=bool)
+    still = np.zeros(len(pos), dtype=bool)
+    delta = np.zeros_like(pos)
+    for new, ok, st in per_camera:
+        ok = ok & todo
+        delta[ok] = new[ok] - pos[ok]
+        todo &= ~ok
+        still |= st
+    held = still & todo
+    todo &= ~still
+    if hidden_radius > 0:
+        delta, taken = propagate_to_hidden(pos, delta, ~todo, hidden_radius)
+        todo &= ~(taken & (np.abs(delta).sum(1) > 0))
+    return delta, ~todo, held
+
+
 def carry_trajectories(run, frames, knots, i: int, j: int) -> dict:
     """Move the junction ``j`` of every Gaussian that is the visible surface at knot ``i`` in
     a train camera along that camera's optical flow, lifted by the stereo depth at
-    ``knots[j]`` (``frames``: the train RGB frames); hidden Gaussians follow their nearest decided neighbour
-    (``traj_carry_hidden`` x extent); later knots hold the result. Returns counts (run.json)."""
+    ``knots[j]`` (``frames``: the train RGB frames); a still visible surface holds; hidden
+    Gaussians follow their nearest decided neighbour (``traj_carry_hidden`` x extent); later
+    knots hold the result (:func:`junction_moves`). Returns counts (run.json)."""
     pri = instant_depth_priors(run, frames)
     g = run.model.gaussians
     with torch.no_grad():
         pos_i = run.model.attributes(knots[i])["means"].detach().cpu().numpy()
-    todo = np.ones(len(pos_i), dtype=bool)
-    still = np.zeros(len(pos_i), dtype=bool)
-    delta = np.zeros_like(pos_i)
     by_cam: dict = {}
     for f in frames:
         by_cam.setdefault(f.camera, {})[round(float(f.time), 9)] = f
-    method = CARRY_FLOW
+    per_camera = []
     for at in by_cam.values():
         fa, fb = at.get(round(knots[i], 9)), at.get(round(knots[j], 9))
         if fa is None or fb is None or id(fa) not in pri or id(fb) not in pri:
             continue
         img_a, img_b = frame_image(run, fa), frame_image(run, fb)
-        new, ok, st = carry_by_flow(pos_i, run.capture.view(fa), image_flow(img_a, img_b, method), *pri[id(fa)],
-                                    *pri[id(fb)], return_still=True)
-        ok &= todo
-        delta[ok] = new[ok] - pos_i[ok]
-        todo &= ~ok
-        still |= st
-    n_flow = int((~todo).sum())
-    if CARRY_HIDDEN > 0:
-        delta, taken = propagate_to_hidden(pos_i, delta, ~todo | still, CARRY_HIDDEN * run.extent)
-        todo &= ~(taken & (np.abs(delta).sum(1) > 0))
-    carried = ~todo
+        per_camera.append(carry_by_flow(pos_i, run.capture.view(fa), image_flow(img_a, img_b, CARRY_FLOW),
+                                        *pri[id(fa)], *pri[id(fb)], return_still=True))
+    n_flow = int(np.logical_or.reduce([ok for _, ok, _ in per_camera]).sum()) if per_camera else 0
+    delta, carried, held = junction_moves(pos_i, per_camera, CARRY_HIDDEN * run.extent)
     if run.cfg.births.motion != "none":  # births.move_born moved those
         carried &= ~born_mask(g).cpu().numpy()
     if carried.any():
@@ -280,4 +303,4 @@ def carry_trajectories(run, frames, knots, i: int, j: int) -> dict:
         for k in range(j, len(knots)):
             tm[idx, 3 * k] = tm[idx, 3 * i] + d
     return {"from": float(knots[i]), "to": float(knots[j]), "carried": int(carried.sum()), "by_flow": n_flow,
-            "total": int(len(carried))}
+            "held": int((held & carried).sum()), "total": int(len(carried))}
