@@ -86,12 +86,13 @@ def test_still_surfaces_hold_moving_ones_move_the_rest_fall_back_to_velocity():
     moved = pos + np.float32(0.2)
     cam0 = (moved, np.array([1, 0, 0, 0, 0, 0], bool), np.array([0, 1, 0, 0, 0, 1], bool))
     cam1 = (moved, np.array([0, 0, 0, 0, 0, 1], bool), np.zeros(6, bool))
-    delta, placed, held = junction_moves(pos, [cam0, cam1], hidden_radius=0.1)
+    delta, placed, held, by_flow = junction_moves(pos, [cam0, cam1], hidden_radius=0.1)
     assert placed.tolist() == [True, True, True, False, False, True]
     assert held.tolist() == [False, True, False, False, False, False]
+    assert by_flow.tolist() == [True, False, False, False, False, True]
     np.testing.assert_allclose(delta[[0, 2, 5]], 0.2, atol=1e-6)
     np.testing.assert_array_equal(delta[1], 0.0)
-    _, placed, _ = junction_moves(pos, [cam0, cam1], hidden_radius=0.0)  # no hand-over
+    _, placed, _, _ = junction_moves(pos, [cam0, cam1], hidden_radius=0.0)  # no hand-over
     assert placed.tolist() == [True, True, False, False, False, True]
 
 

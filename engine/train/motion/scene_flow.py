@@ -241,7 +241,7 @@ def frame_image(run, frame) -> np.ndarray:
 
 
 def junction_moves(positions: np.ndarray, per_camera,
-                   hidden_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   hidden_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Which Gaussians the carry places at the next RGB instant, and by how much.
 
     ``per_camera``: one ``(new positions, carried, still)`` of :func:`carry_by_flow` per train
@@ -252,8 +252,8 @@ def junction_moves(positions: np.ndarray, per_camera,
     the median long-lived Gaussian 4 cm from its first junction at the last one;
     docs/experiments/carry-holds-still-surfaces.md). Hidden Gaussians take the move of their
     nearest decided neighbour within ``hidden_radius`` (world units; 0: off) when it moved.
-    Returns (delta [N, 3], placed [N] bool, held [N] bool); rows not placed are left to the
-    caller's constant-velocity fallback."""
+    Returns (delta [N, 3], placed [N] bool, held [N] bool, by_flow [N] bool: moved by a
+    camera's flow); rows not placed are left to the caller's constant-velocity fallback."""
     pos = np.asarray(positions, np.float32)
     todo = np.ones(len(pos), dtype=bool)
     still = np.zeros(len(pos), dtype=bool)
@@ -263,12 +263,13 @@ def junction_moves(positions: np.ndarray, per_camera,
         delta[ok] = new[ok] - pos[ok]
         todo &= ~ok
         still |= st
+    by_flow = ~todo
     held = still & todo
     todo &= ~still
     if hidden_radius > 0:
         delta, taken = propagate_to_hidden(pos, delta, ~todo, hidden_radius)
         todo &= ~(taken & (np.abs(delta).sum(1) > 0))
-    return delta, ~todo, held
+    return delta, ~todo, held, by_flow
 
 
 def carry_trajectories(run, frames, knots, i: int, j: int) -> dict:
@@ -292,8 +293,7 @@ def carry_trajectories(run, frames, knots, i: int, j: int) -> dict:
         img_a, img_b = frame_image(run, fa), frame_image(run, fb)
         per_camera.append(carry_by_flow(pos_i, run.capture.view(fa), image_flow(img_a, img_b, CARRY_FLOW),
                                         *pri[id(fa)], *pri[id(fb)], return_still=True))
-    n_flow = int(np.logical_or.reduce([ok for _, ok, _ in per_camera]).sum()) if per_camera else 0
-    delta, carried, held = junction_moves(pos_i, per_camera, CARRY_HIDDEN * run.extent)
+    delta, carried, held, by_flow = junction_moves(pos_i, per_camera, CARRY_HIDDEN * run.extent)
     if run.cfg.births.motion != "none":  # births.move_born moved those
         carried &= ~born_mask(g).cpu().numpy()
     if carried.any():
@@ -302,5 +302,5 @@ def carry_trajectories(run, frames, knots, i: int, j: int) -> dict:
         d = torch.from_numpy(delta[carried]).to(tm)
         for k in range(j, len(knots)):
             tm[idx, 3 * k] = tm[idx, 3 * i] + d
-    return {"from": float(knots[i]), "to": float(knots[j]), "carried": int(carried.sum()), "by_flow": n_flow,
-            "held": int((held & carried).sum()), "total": int(len(carried))}
+    return {"from": float(knots[i]), "to": float(knots[j]), "carried": int(carried.sum()),
+            "by_flow": int(by_flow.sum()), "held": int((held & carried).sum()), "total": int(len(carried))}
