@@ -67,8 +67,8 @@ class BT4D_SceneSettings(PropertyGroup):
     seconds: FloatProperty(
         name="Time Budget", default=0.0, min=0.0, soft_max=7200.0, unit="TIME_ABSOLUTE",
         description="How long training may take. 0 (the default): the preset's own number of steps, as "
-                    "on the command line. A budget sizes the run to fit it, at most twice the preset's steps "
-                    "(Balanced 1.5 times, Quality its own), and may finish early")
+                    "on the command line. A budget sizes the run to fit it; a budget with time to spare "
+                    "runs the preset's steps, settles, and finishes early once more steps stop paying")
     output_dir: StringProperty(
         name="Output", subtype="DIR_PATH", default="//bt4d_runs/",
         description="Where runs (checkpoints, exports, renders) are written")

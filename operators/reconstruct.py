@@ -201,9 +201,10 @@ def finish(scene, job: worker.Job) -> tuple[str, str]:
         se = summary["stopped_early"]
         msgs.append(f"stopped early at step {se.get('step')}/{se.get('total_steps')} "
                     "(held-out PSNR no longer improving)")
-    elif summary.get("ended_by") == "step_cap" and summary.get("budget_used") is not None:
-        msgs.append(f"ended at the step cap after {summary.get('step')} steps, {summary['budget_used']:.0%} of the "
-                    "time budget (more steps cost the new view)")
+    elif (summary.get("settle") or {}).get("converged_at") is not None and summary.get("budget_used") is not None:
+        msgs.append(f"converged after {summary.get('step')} steps, {summary['budget_used']:.0%} of the time budget "
+                    f"(the schedule ended at step {summary['settle']['from_step']}; more steps would not sharpen "
+                    "the new view)")
     prep = summary.get("budget_estimates") or {}
     if summary.get("ended_by") == "budget" and prep.get("preparation_heavy"):
         msgs.append(f"preparing the capture took {prep['preparation_s']:.0f} s, "

@@ -329,12 +329,9 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s.seconds = 0.0
     # its tooltip says what the engine does: held-back train frames, never the eval frames
     assert "never the eval frames" in s.bl_rna.properties["early_stop"].description
-    # the time budget's tooltip says what the step cap does, per preset (engine.train.loop.budget.step_cap)
-    from engine.train.config import get_preset
+    # the time budget's tooltip says what a budget with time to spare does (engine.train.loop.settle)
     budget_tip = s.bl_rna.properties["seconds"].description
-    assert "twice the preset's step" in budget_tip and get_preset("fast").schedule.step_cap == 2.0
-    assert "Balanced 1.5 times" in budget_tip and get_preset("balanced").schedule.step_cap == 1.5
-    assert "Quality its own" in budget_tip and get_preset("quality").schedule.step_cap == 1.0
+    assert "runs the preset's steps, settles, and finishes early once more steps stop paying" in budget_tip
     # "Motion": the engine's default (first item) passes nothing; another choice is passed
     from engine.train.config import TrainConfig
     assert s.motion == TrainConfig().motion.representation
@@ -362,10 +359,12 @@ def test_advanced_switches_reach_the_trainer_as_overrides(scene, demo_capture, t
     s.early_stop = True
     r = bpy.context.scene.bt4d_run
     assert r.status == "FINISHED" and "stopped early at step 3/5" in r.message
-    # a budget run that ended at the step cap says so, with the share of its time it used
-    summary.update(stopped_early=None, step=80, total_steps=80, ended_by="step_cap", budget_used=0.14)
+    # a budget run that settled after its schedule and converged says so, with the share of its time it used
+    summary.update(stopped_early=None, step=180, total_steps=900, ended_by="converged", budget_used=0.14,
+                   settle={"from_step": 80, "converged_at": 180})
     assert bpy.ops.bt4d.reconstruct(iterations=5) == {"FINISHED"}
-    assert "step cap after 80 steps, 14% of the time budget" in r.message, r.message
+    assert "converged after 180 steps, 14% of the time budget (the schedule ended at step 80" in r.message, r.message
+    summary.pop("settle")
     # one whose budget went mostly into preparing the capture says that instead
     summary.update(step=3, total_steps=20, ended_by="budget", budget_used=1.3,
                    budget_estimates={"preparation_s": 146.0, "preparation_share": 1.22,

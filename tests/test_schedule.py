@@ -150,23 +150,24 @@ def test_cancel_and_resume_after_a_re_plan_equals_an_uninterrupted_run(tiny_capt
     step_fn = trainer_mod.Trainer.step
 
     def replanning_step(self, step):  # a budget run's re-plan, deterministic
-        if step == 12 and self.total_steps == 40:
-            self.schedule.replan(12, 55)
+        if step == 12 and self.total_steps == 30:
+            self.schedule.replan(12, 45)  # stretched: still within the schedule's span (iterations 50)
         return step_fn(self, step)
 
     monkeypatch.setattr(trainer_mod.Trainer, "step", replanning_step)
-    ov = {"iterations": 40, "static_fraction": 0.25, "densify_from": 0.1, "densify_every": 10, "init": "ply"}
+    ov = {"iterations": 50, "schedule.steps": 30, "static_fraction": 0.25, "densify_from": 0.1, "densify_every": 10,
+          "init": "ply"}
     full = tmp_path / "full"
     s = train(tiny_capture, full, overrides=ov, seed=3, device="cpu")
-    assert s["step"] == s["total_steps"] == 55
+    assert s["step"] == s["total_steps"] == 45
     part = tmp_path / "part"
     cancel = threading.Event()
     s1 = train(tiny_capture, part, overrides=ov, seed=3, device="cpu", cancel=cancel,
                progress=lambda d: d["step"] == 23 and cancel.set())
     assert s1["status"] == "cancelled" and s1["step"] == 23
-    assert load_checkpoint(part)["schedule"]["segments"][1] == [12, 12.0, 28 / 43]
+    assert load_checkpoint(part)["schedule"]["segments"][1] == [12, 12.0, 18 / 33]
     s2 = train(tiny_capture, part, overrides=ov, seed=3, device="cpu")
-    assert s2["resumed_from"] == 23 and s2["step"] == 55
+    assert s2["resumed_from"] == 23 and s2["step"] == 45
     a, b = load_checkpoint(full), load_checkpoint(part)
     assert a["schedule"] == b["schedule"]
     for k, v in a["model"]["gaussians"]["params"].items():
@@ -184,3 +185,17 @@ def test_densify_window_follows_the_clock_and_its_cadence_the_real_steps():
     assert np.all(np.diff(events) == 10)
     assert sch.virtual(events[0] - 10) >= 10 and sch.virtual(events[-1]) < 70 <= sch.virtual(events[-1] + 10)
     assert len(events) == 15                             # 5 in the 100-step plan (20, 30, ..., 60)
+
+
+def test_settle_monitor_compares_windows_of_whole_epochs():
+    """A settling run shows every train frame once per epoch, so windows of whole epochs compare like with like:
+    the first starts at the epoch boundary after the schedule; a window that gains under MIN_GAIN ends the run."""
+    from engine.train.loop.settle import MIN_GAIN, MIN_WINDOW_STEPS, SettleMonitor
+
+    mon = SettleMonitor(n_frames=20, from_step=1045)
+    assert mon.start == 1060 and mon.window == 60 and mon.window >= MIN_WINDOW_STEPS
+    mse = iter([0.5] * 15 + [1.0] * 60 + [0.9] * 60 + [0.9 * (1 - MIN_GAIN / 2)] * 60)  # a 10 % gain, then 0.5 %
+    done = [s for s in range(1045, 1045 + 195) if mon.update(s, next(mse))]
+    assert mon.means == pytest.approx([1.0, 0.9, 0.9 * (1 - MIN_GAIN / 2)])  # the steps before 1060 are not counted
+    assert done[0] == 1239 and mon.converged_at == 1240 and mon.summary()["converged_at"] == 1240
+    assert mon.update(1240, 5.0)  # once converged it stays so

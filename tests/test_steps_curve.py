@@ -35,7 +35,8 @@ def test_steps_curve_trains_each_multiple_and_reports(tmp_path, capsys):
     assert [r["multiple"] for r in report["rows"]] == [1.0, 2.0] and [r["steps"] for r in report["rows"]] == [8, 16]
     for r in report["rows"]:  # real runs, scored at the eval camera
         run = tmp_path / "sc" / "cap" / f"x{r['multiple']:g}"
-        assert json.loads((run / "run.json").read_text())["step"] == r["steps"]
+        info = json.loads((run / "run.json").read_text())
+        assert info["step"] == r["steps"] and info["config"]["schedule"]["iterations"] == 8  # 2x: 8 settle
         assert 5.0 < r["psnr"] < 60.0 and r["lpips"] is not None
     assert report["rows"][0]["d_psnr"] == 0.0 and "collapse" in capsys.readouterr().out
     assert (tmp_path / "sc" / "steps_curve.png").stat().st_size > 10_000

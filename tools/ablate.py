@@ -3,8 +3,8 @@ equal-step ablation (paper Tables 1, 3).
 
 Trains every variant for the same wall-clock budget (``--seconds``: each variant's schedule
 is sized to fit, so a guided variant runs fewer steps) or the same number of steps
-(``--steps``: ``iterations`` = N, no time budget; ``--seconds`` turns the budget's step cap
-off, ``budget_step_cap`` 0, unless ``--set`` gives one), records each one's steps and seconds
+(``--steps``: ``iterations`` = N, no time budget; under ``--seconds`` a variant whose schedule
+ends before its time settles and may end early, converged: run.json ``ended_by``), records each one's steps and seconds
 (wall time under shared load is noisy: read the two together), scores each on the capture's eval
 frames (:func:`engine.evaluate.evaluate`), prints one table (PSNR / SSIM over all eval
 frames, over inter-frame instants, PSNR over dynamic pixels, PSNR at the RGB instants) and writes
@@ -125,8 +125,6 @@ def run_ablation(capture, out_dir, seconds: float | None, variants: list[str], *
             merged = {**(overrides or {}), **ov}
             if steps is not None:
                 merged["iterations"] = int(steps)
-            else:  # equal wall time: the budget's step cap (engine.train.loop.budget.step_cap) would end variants early
-                merged.setdefault("budget_step_cap", 0.0)
             budget = f"{seconds:g} s" if steps is None else f"{int(steps)} steps"
             log(f"[ablate] {name}: training {budget} (rgb_only={rgb_only}, {merged or 'defaults'})")
             t0 = time.perf_counter()

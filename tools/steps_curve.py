@@ -1,11 +1,12 @@
 """``python -m tools steps-curve CAPTURE... --out DIR``: new-view quality against the number of
 training steps (issue 46: more training must never make the new view worse).
 
-Each capture is trained with its preset's whole schedule at 1x, 2x, 4x and 8x the preset's
-``schedule.iterations`` (``--multiples``; each run is a full schedule of that many steps, what a
-user with that budget gets), scored on the capture's eval frames (:func:`engine.evaluate.evaluate`:
-cameras no train camera stood at) and tabulated: all eval frames, between RGB frames, moving
-pixels, static pixels at RGB instants and between them, the largest static colour drift and LPIPS.
+Each capture is trained for 1x, 2x, 4x and 8x the preset's ``schedule.iterations`` steps
+(``--multiples``; ``schedule.steps``: the preset's schedule, then the steps past it settle, what a
+user with that budget gets, engine.train.loop.schedule), scored on the capture's eval frames
+(:func:`engine.evaluate.evaluate`: cameras no train camera stood at) and tabulated: all eval
+frames, between RGB frames, moving pixels, static pixels at RGB instants and between them, the
+largest static colour drift and LPIPS.
 A multiple whose PSNR falls more than ``COLLAPSE_DB`` under the 1x run's, or whose LPIPS rises more
 than ``COLLAPSE_LPIPS`` over it, is marked as a collapse. Writes ``DIR/steps_curve.json``,
 ``DIR/steps_curve.md`` and ``DIR/steps_curve.png`` (the curves); ``--resume`` reuses scored runs.
@@ -71,7 +72,7 @@ def steps_curve(captures, out_dir, multiples, *, preset: str = "fast", rgb_only:
                 log(f"[steps-curve] {Path(cap).name} x{m:g}: {steps} steps")
                 t0 = time.perf_counter()
                 summary = train(cap, run_dir, preset=preset, rgb_only=rgb_only, resume=False, device=device,
-                                seed=seed, overrides={**(overrides or {}), "schedule.iterations": steps})
+                                seed=seed, overrides={**(overrides or {}), "schedule.steps": steps})
                 wall = time.perf_counter() - t0
                 metrics = dict(evaluate(run_dir, cap, device=device or "cpu"))
                 metrics.update(steps=summary.get("step"), train_seconds=summary.get("train_seconds"),
@@ -113,14 +114,21 @@ def format_table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path, title: str = "") -> Path:
-    panels = [("psnr", "eval PSNR, all frames (dB)"),
-              ("psnr_static_interframe", "static pixels between RGB frames (dB)"), ("lpips", "LPIPS (lower is better)")]
+    # (key, title, the least span of the y axis: a flat curve drawn flat, not as noise blown up to the panel)
+    panels = [("psnr", "eval PSNR, all frames (dB)", 1.0),
+              ("psnr_static_interframe", "static pixels between RGB frames (dB)", 1.0),
+              ("lpips", "LPIPS (lower is better)", 0.03)]
     fig, axes = report.plt.subplots(1, len(panels), figsize=(4.3 * len(panels), 3.5), squeeze=False)
-    for ax, (key, label) in zip(axes[0], panels):
+    for ax, (key, label, least) in zip(axes[0], panels):
+        vals = []
         for cap in dict.fromkeys(r["capture"] for r in rows):
             pts = [(r["multiple"], r[key]) for r in rows if r["capture"] == cap and r.get(key) is not None]
             if pts:
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=cap)
+                vals += [p[1] for p in pts]
+        if vals and max(vals) - min(vals) < least:
+            mid = 0.5 * (max(vals) + min(vals))
+            ax.set_ylim(mid - 0.5 * least, mid + 0.5 * least)
         ax.set_xscale("log", base=2)
         ms = sorted({r["multiple"] for r in rows})
         ax.set_xticks(ms, [f"{m:g}x" for m in ms])

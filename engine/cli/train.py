@@ -118,7 +118,7 @@ def main(args) -> int:
 
 
 def ended_note(summary: dict) -> str | None:
-    """One line for a budget run that did not use its time (the step cap or convergence) or that spent most
+    """One line for a budget run that did not use its time (it converged) or that spent most
     of it preparing (stereo, initial Gaussians; run.json ``budget_estimates.preparation_heavy``), else None."""
     used, steps = summary.get("budget_used"), summary.get("step")
     est = summary.get("budget_estimates") or {}
@@ -126,10 +126,15 @@ def ended_note(summary: dict) -> str | None:
         return (f"warning: preparing the capture took {est['preparation_s']:.0f} s, "
                 f"{est['preparation_share']:.0%} of the --seconds budget; {steps} steps trained in what was left: "
                 "give --seconds well above the preparation time")
-    if summary.get("ended_by") == "step_cap":
-        return (f"note: ended at the step cap after {steps} steps, {used:.0%} of the budget: more steps cost the new "
-                "view on the scenes we measured (schedule.step_cap; 0 turns it off)")
     if summary.get("ended_by") == "converged" and used is not None:
-        return (f"note: converged after {steps} steps, {used:.0%} of the budget (held-back train frames stopped "
-                "improving)")
+        return f"note: converged after {steps} steps, {used:.0%} of the budget ({converged_why(summary)})"
     return None
+
+
+def converged_why(summary: dict) -> str:
+    """What said a run converged, in a few words (the command line's note, the Blender panel's message)."""
+    settle = summary.get("settle") or {}
+    if settle.get("converged_at") is not None:
+        return (f"the schedule ended at step {settle['from_step']}; the train frames then stopped improving, "
+                "and more steps would not sharpen the new view")
+    return "held-back train frames stopped improving"

@@ -233,6 +233,7 @@ class GaussianModel(nn.Module):
         lrs = {"means": cfg.lr_means * self.extent, "log_scales": cfg.lr_scales, "quats": cfg.lr_quats,
                "opacity_logits": cfg.lr_opacities, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_dc * SH_REST_LR_RATIO}
         groups = [{"params": [getattr(self, n)], "lr": lrs[n], "name": n} for n in PARAM_NAMES]
+        self._base_lrs = lrs  # what scale_constant_lrs scales
         groups += [{"params": [getattr(self, n)], "lr": self._extra_lr(n), "name": n} for n in self.extra_lrs]
         # FusedAdam: torch's Adam bit for bit; SelectiveAdam: only the rows the step's renders
         # saw (and the curve columns they read) move (engine.scene.selective_adam)
@@ -262,6 +263,14 @@ class GaussianModel(nn.Module):
             elif g["name"] in getattr(self, "extra_position_like", set()):
                 g["lr"] = self._extra_lr(g["name"], lr / lr0)
         return lr
+
+    def scale_constant_lrs(self, factor: float) -> None:
+        """Every lr no schedule decays (all but the means' and position-like extras') at ``factor`` x its
+        configured value: the settle stage after the schedule (engine.train.loop.schedule)."""
+        for g in self.optimizer.param_groups:
+            n = g["name"]
+            if n != "means" and n not in getattr(self, "extra_position_like", set()):
+                g["lr"] = (self._base_lrs[n] if n in self._base_lrs else self._extra_lr(n)) * factor
 
     def oneup_sh_degree(self) -> None:
         if self.active_sh_degree < self.max_sh_degree:

@@ -8,7 +8,8 @@ stage, and again every 10% of the deformation stage from that stage's own rate
 (:func:`reestimate_deform_steps`). The run applies a new total with
 :meth:`engine.train.loop.schedule.Schedule.replan`: every schedule keeps its current progress and
 spreads the rest over the new remaining steps, so a re-plan never moves a stage boundary
-back or makes a schedule jump.
+back or makes a schedule jump. Steps past the schedule's own length settle, and a settling run
+ends when it has converged (engine.train.loop.settle): no step cap.
 Kernel compilation and first imports run before the budget's clock starts
 (:func:`warm_up_runtime`).
 """
@@ -87,19 +88,7 @@ def steps_for_budget(seconds: float, t_static: float, t_deform: float, cfg: Trai
                      growth: float = 1.5, reserve_s: float = 0.0) -> int:
     """Steps that fit in ``seconds`` given per-step costs (Gaussian growth factored in)."""
     per = (cfg.schedule.static_fraction * t_static + (1 - cfg.schedule.static_fraction) * t_deform) * growth
-    n = max(20, int((max(0.0, seconds - reserve_s)) / max(per, 1e-4)))
-    cap = step_cap(cfg)
-    return n if cap is None else min(n, cap)
-
-
-def step_cap(cfg: TrainConfig) -> int | None:
-    """The most steps a budget run plans: ``budget_step_cap`` x ``iterations`` (at least 20), or None
-    (cap 0). Past it more steps cost the novel views: fast preset, 120 s budgets ran 2700-7300 steps and
-    2000 fixed steps scored higher at the eval cameras on 5 of 6 scene x model pairs
-    (docs/experiments/flow-junctions.md "eq16");
-    a run the cap binds ends before its budget."""
-    f = float(cfg.schedule.step_cap or 0.0)
-    return max(20, int(round(f * int(cfg.schedule.iterations)))) if f > 0 else None
+    return max(20, int((max(0.0, seconds - reserve_s)) / max(per, 1e-4)))
 
 
 REESTIMATE_FRACTION = 0.05  # re-estimate the budget's step count after this share of the probe's estimate
@@ -147,12 +136,8 @@ def reestimate_deform_steps(trainer, done: int, step_seconds: float, remaining_s
     bounds the last one. The new total lets at least the next step run (the schedule's
     virtual clock keeps the stage, engine.train.loop.schedule). Returns the record for run.json."""
     new = done + max(1, int(max(0.0, remaining_s) / max(step_seconds, 1e-6)))
-    rec = {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
-           "total_steps": int(new), "previous_total_steps": int(trainer.total_steps)}
-    cap = step_cap(trainer.cfg)
-    if cap is not None and new > max(cap, done):  # the cap binds: no more than it, and the run may end now
-        rec.update(total_steps=int(max(cap, done)), capped=int(cap))
-    return rec
+    return {"at_step": int(done), "deform_step_s": round(step_seconds, 5), "remaining_s": round(remaining_s, 3),
+            "total_steps": int(new), "previous_total_steps": int(trainer.total_steps)}
 
 
 def warm_up_runtime(device) -> float:

@@ -3,7 +3,8 @@
 Resume from the folder's checkpoint when its config matches, size the schedule for a
 wall-clock budget (:mod:`engine.train.loop.budget`; the budget is also enforced as a hard stop,
 reported as ``stopped_by_budget``), step the :class:`engine.train.loop.trainer.Trainer`, report
-progress, honour cancel (checkpoint and stop), early stop, and keep ``checkpoint.pt`` and
+progress, honour cancel (checkpoint and stop), early stop, end a budget run that settles past its
+schedule once it converges (:mod:`engine.train.loop.settle`), and keep ``checkpoint.pt`` and
 ``run.json`` up to date (both budget estimates are in run.json).
 """
 from __future__ import annotations
@@ -34,10 +35,10 @@ from .budget import (
     reestimate_at,
     reestimate_deform_steps,
     reestimate_steps,
-    step_cap,
     steps_for_budget,
     warm_up_runtime,
 )
+from .settle import SettleMonitor
 from .trainer import LOSS_FACTORIES, LossFactory, Trainer, capture_path
 
 __all__ = ["train"]
@@ -163,7 +164,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             trainer.total_steps = steps_for_budget(seconds, t_s, t_d, cfg, reserve_s=elapsed + 1.0)
             budget_estimates = {"probe": {"static_step_s": round(t_s, 5), "deform_step_s": round(t_d, 5),
                                           "total_steps": trainer.total_steps}, "measured": None,
-                                "step_cap": step_cap(cfg),  # a run it binds ends before its budget
+                                # steps past the schedule's own settle, and end when they converge
+                                "schedule_steps": int(cfg.schedule.iterations),
                                 # before the first step: a share near 1 leaves nothing to train; "preparation_heavy"
                                 # is the one decision the command line's and the panel's notes read
                                 "preparation_s": round(elapsed, 3),
@@ -219,11 +221,12 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     deform_mark = None  # (step, time) where the current deformation-stage rate window starts
     next_deform_check = None
     deform_rate = None  # the latest measured seconds per deformation step
+    settle, settled = None, False  # a budget run past its schedule: has it converged? (engine.train.loop.settle)
     if budget_estimates is not None:
         budget_estimates["deform"] = []
     out = {"loss": float("nan"), "psnr": float("nan")}
     try:
-        while step < trainer.total_steps and stopped_early is None:
+        while step < trainer.total_steps and stopped_early is None and not settled:
             if cancel is not None and cancel.is_set():
                 status = "cancelled"
                 break
@@ -233,6 +236,9 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
             out = trainer.step(step)
             step += 1
             total = trainer.total_steps
+            if budget_end is not None and trainer.schedule.settling(step - 1):
+                settle = settle or SettleMonitor(len(trainer.items), step - 1)
+                settled = settle.update(step - 1, 10.0 ** (-out["psnr"] / 10.0))
             if early is not None and early.update(trainer.run, step):
                 stopped_early = early.stopped_at
             now = time.perf_counter()
@@ -272,7 +278,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
                     left = budget_end - now - END_RESERVE_S
                     rec = None if deform_rate is None or left < 2 * deform_rate else \
                         dict(reestimate_deform_steps(trainer, step, deform_rate, left), fill=True)
-                    if rec is not None and rec["total_steps"] > step:  # not when the step cap has bound
+                    if rec is not None and rec["total_steps"] > step:
                         budget_estimates["deform"].append(rec)
                         trainer.schedule.replan(step, rec["total_steps"])
                         total = trainer.total_steps
@@ -302,6 +308,8 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         update_run_json(run_dir, quiet_curves=quiet.finish(trainer.model))
     snapshot(step, status, train_seconds)
     skips = trainer.skip_summary()
+    if settle is not None:
+        update_run_json(run_dir, settle=settle.summary())
     if trainer.carry_info:  # trajectories carried by scene flow (issue 11)
         update_run_json(run_dir, trajectory_carry=trainer.carry_info)
     if getattr(trainer, "birth_info", None):  # Gaussians born at admitted instants (engine.train.motion.births)
@@ -309,7 +317,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     fits = getattr(getattr(trainer, "spike_flow", None), "fitted", None)
     if fits:  # the spike-view flow's interval fits (engine.train.guidance.spike_flow.fit_interval)
         update_run_json(run_dir, spike_flow_fits=[fits[k] for k in sorted(fits) if fits[k]])
-    ended_by = _ended_by(status, stopped_early, stopped_by_budget, seconds, step, budget_estimates)
+    ended_by = _ended_by(status, stopped_early or settled, seconds)
     budget_used = None if seconds is None else round(train_seconds / max(float(seconds), 1e-9), 3)
     summary = {
         "status": status, "ended_by": ended_by, "budget_used": budget_used,
@@ -317,7 +325,7 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
         "num_gaussians": trainer.model.gaussians.num_gaussians, "device": str(dev), "run_dir": str(run_dir.resolve()),
         "preset": preset, "loss": out.get("loss"), "psnr": out.get("psnr"), "init": trainer.init_info,
         "stopped_by_budget": stopped_by_budget, "resumed_from": start_step if resumed else None,
-        "stopped_early": stopped_early, "skips": skips,
+        "stopped_early": stopped_early, "skips": skips, "settle": None if settle is None else settle.summary(),
     }
     if budget_estimates is not None:
         budget_estimates["schedule"] = trainer.schedule.state_dict()  # the clock's segments, one per re-plan
@@ -330,18 +338,12 @@ def _train(capture, out_dir, *, preset, seconds, rgb_only, resume, dev, seed, pr
     return summary
 
 
-def _ended_by(status: str, stopped_early, stopped_by_budget: bool, seconds, step: int, budget_estimates) -> str:
-    """Why the run ended (run.json ``ended_by``): cancelled | converged (the held-back train frames
-    stopped improving, ``skip.early_stop``) | steps (a run of ``iterations`` steps, no budget) |
-    step_cap (a budget run that reached ``schedule.step_cap`` x its steps before its time,
-    engine.train.loop.budget.step_cap) | budget (it used its time)."""
+def _ended_by(status: str, converged, seconds) -> str:
+    """Why the run ended (run.json ``ended_by``): cancelled | converged (a budget run that settled after
+    its schedule and stopped gaining, run.json ``settle``; or the held-back train frames stopped
+    improving, ``skip.early_stop``) | steps (a run of its steps, no budget) | budget (it used its time)."""
     if status == "cancelled":
         return "cancelled"
-    if stopped_early:
+    if converged:
         return "converged"
-    if seconds is None:
-        return "steps"
-    cap = (budget_estimates or {}).get("step_cap")
-    if not stopped_by_budget and cap is not None and step >= int(cap):
-        return "step_cap"
-    return "budget"
+    return "steps" if seconds is None else "budget"

@@ -57,6 +57,7 @@ from ..skipping.early_stop import EarlyStop, hold_back_frames
 from ..skipping.freezing import TrainFreezer
 from .scene_setup import capture_path, densify_cap, inside_box, robust_bounds, scene_extent, scene_points, train_frames
 from .schedule import Schedule
+from .settle import settle_lr
 
 # The loss factories of a run: each ``(run context) -> [LossTerm]`` is called when a (non rgb_only) run starts. The
 # spike guidance (Eq. 4-23) returns nothing without a spike stream (such captures train as RGB-only); the spike-view
@@ -107,7 +108,7 @@ class Trainer:
         self.run = RunContext(cfg, capture, torch.device(device), int(seed), [], [], (0.0, 0.0), FusionCache(capture),
                               rgb_only=bool(rgb_only))
         self._bind_run()
-        self.total_steps = int(total_steps or cfg.schedule.iterations)
+        self.total_steps = int(total_steps or cfg.schedule.steps or cfg.schedule.iterations)
         frames = train_frames(capture)
         if not frames:
             raise RunError(capture_path(capture) or "capture", "the capture has no train RGB frames")
@@ -190,7 +191,7 @@ class Trainer:
 
     # ---- schedule: every one reads one clock, continuous under budget re-plans (engine.train.loop.schedule) ----
     total_steps = property(lambda self: self.schedule.total,
-                           lambda self, n: setattr(self, "schedule", Schedule.plan(n)),
+                           lambda self, n: setattr(self, "schedule", Schedule.plan(n, self.cfg.schedule.iterations)),
                            doc="Real steps planned; setting it plans afresh (mid-run re-plans: schedule.replan)")
 
     static_steps = property(lambda self: self.schedule.static_steps(self.cfg.schedule.static_fraction))
@@ -358,6 +359,8 @@ class Trainer:
 
     def _update_lrs(self, step: int) -> None:
         self.model.gaussians.update_learning_rate(self.schedule.run_progress(step))
+        if self.schedule.settling(step):  # past the schedule two fixed views are fitted through any freedom left
+            self.model.gaussians.scale_constant_lrs(settle_lr(step, self.schedule))
         p = min(1.0, max(0.0, self.schedule.deform_progress(step, self.cfg.schedule.static_fraction, last=1)))
         if self.model.trajectory is not None:  # decays over the deformation stage, like the field
             for grp in self.model.gaussians.optimizer.param_groups:
