@@ -35,7 +35,7 @@ from .planesweep import (
     stereo_depths,
     stereo_pair,
 )
-from .resolution import backdrop_points, backdrop_stride
+from .resolution import backdrop_points, backdrop_stride, continued_depth
 from .stereo import StereoUnavailable, capture_fusion, fused_points
 
 
@@ -200,12 +200,14 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
         far = 3.0 * float(info["depth_p5_p95"][1]) if "depth_p5_p95" in info else np.inf
         for f in (fa, fb):
             ok = np.isfinite(f.static_depth)
-            if found:
+            filled = fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok) if ok.any() else None
+            stride = backdrop_stride(f.view.intrinsics.width)
+            if found:  # on the planes; beyond their extent, the depth continued from the image
+                cont = continued_depth(f.view, filled, backdrop) if filled is not None else None
                 parts.append(plane_backdrop_points(f.view, np.median(f.images, axis=0), found, backdrop, max_depth=far,
-                                                   stride=backdrop_stride(f.view.intrinsics.width)))
-            elif ok.any():
-                parts.append(backdrop_points(f, fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok),
-                                             backdrop, stride=backdrop_stride(f.view.intrinsics.width)))
+                                                   stride=stride, continued=cont))
+            elif filled is not None:
+                parts.append(backdrop_points(f, filled, backdrop, stride=stride))
         if parts:
             back = InitPoints(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), "backdrop")
     return InitPoints(xyz, rgb, "stereo", info), back

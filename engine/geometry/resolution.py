@@ -79,6 +79,19 @@ def extrapolate_inverse_depth(inv: np.ndarray, pad_x: int, pad_y: int, k: int = 
     return np.maximum(out, floor).astype(np.float32)
 
 
+def continued_depth(view, filled_depth: np.ndarray, fraction: float) -> np.ndarray:
+    """[H + 2 py, W + 2 px] planar depth of ``view``: ``filled_depth`` (its hole-filled static
+    depth, 0 where unknown) continued a ring ``fraction`` x the image size wide beyond each border
+    by :func:`extrapolate_inverse_depth`; NaN where nothing is known."""
+    k = view.intrinsics
+    px, py = int(round(fraction * k.width)), int(round(fraction * k.height))
+    inv = np.where(filled_depth > 0, 1.0 / np.maximum(filled_depth, 1e-9), 0.0)
+    if not np.any(inv > 0):
+        return np.full((k.height + 2 * py, k.width + 2 * px), np.nan, np.float32)
+    ext = extrapolate_inverse_depth(inv, px, py)
+    return np.where(ext > 0, 1.0 / np.maximum(ext, 1e-12), np.nan).astype(np.float32)
+
+
 def backdrop_points(fused, filled_depth: np.ndarray, fraction: float, stride: int = 4):
     """Points beyond the image borders of the camera of ``fused`` (a stereo.FusedDepth; a ring
     ``fraction`` x the image size wide): depth continued from the (hole-filled) static depth by
