@@ -139,3 +139,23 @@ time.sleep(0.1)
     assert r.returncode == 0, r.stderr
     done = sorted(int(p.name) for p in tmp_path.iterdir())
     assert done == [0]  # the running job finished, the 49 queued ones were dropped
+
+
+def test_join_waits_for_a_thread_that_already_found_the_queue_empty():
+    """A thread that found no job left clears ``_thread`` before it has returned; ``join`` must
+    still wait for it (a finished run listed its flow worker on a loaded machine)."""
+
+    class SlowToLeave(PriorityWorker):
+        def _next(self):
+            nxt = super()._next()
+            if nxt is None:
+                time.sleep(0.3)  # _thread is cleared, the thread is still alive
+            return nxt
+
+    w = SlowToLeave("test-leaving")
+    w.submit("a", lambda: None)
+    w._jobs["a"].done.wait(5)
+    time.sleep(0.05)
+    assert w._thread is None
+    w.join()
+    assert not [t for t in threading.enumerate() if t.name == "test-leaving"]

@@ -225,8 +225,8 @@ def plane_fill(view, filled_depth: np.ndarray, ok: np.ndarray, planes: list[Plan
     unknown pixels replaced by the plane depth where that agrees with the interpolation within
     ``max_rel`` (a weakly textured floor keeps its plane; a hole inside an object keeps the
     interpolation). Taking the plane also where the interpolation runs behind it (the floor's
-    bottom rows: 24-32 % too far, 0.7 % on the plane) cost 0.1-0.2 dB on the 1 m scenes and was
-    not kept (docs/experiments/floor-stereo-missed.md)."""
+    bottom rows: 22-42 % too far, 0.4-0.8 % on the plane) paid 0.3-0.5 dB on the two sets it was
+    built on and -0.12...-0.02 on three unseen ones: not kept (docs/experiments/floor-stereo-missed.md)."""
     k = view.intrinsics
     v, u = np.mgrid[0:k.height, 0:k.width].astype(np.float64)
     pd = ray_plane_depth(view, planes, u + 0.5, v + 0.5)

@@ -76,6 +76,7 @@ class PriorityWorker:
         self._jobs: dict[Hashable, _Job] = {}
         self._seq = itertools.count()
         self._thread: threading.Thread | None = None
+        self._started: list[threading.Thread] = []  # every thread started (join waits for all)
         self._closed = False
         self.ran: list = []  # keys in the order they ran (tests, diagnostics)
         _LIVE.add(self)
@@ -104,6 +105,7 @@ class PriorityWorker:
             heapq.heappush(self._heap, (priority, next(self._seq), key))
             if self._thread is None:
                 self._thread = threading.Thread(target=self._loop, name=self.name, daemon=True)
+                self._started = [t for t in self._started if t.is_alive()] + [self._thread]
                 self._thread.start()
             self._cv.notify()
 
@@ -131,10 +133,14 @@ class PriorityWorker:
                     job.done.set()
 
     def join(self, timeout: float | None = None) -> None:
-        """Wait until the thread has nothing left (tests)."""
-        t = self._thread
-        if t is not None:
-            t.join(timeout)
+        """Wait until the thread has nothing left and has exited: a thread that found the queue
+        empty has already cleared ``_thread`` while it is still returning (a loaded machine
+        widened that window until a finished run still listed its worker)."""
+        with self._cv:
+            threads = list(self._started)
+        for t in threads:
+            if t is not threading.current_thread():
+                t.join(timeout)
 
     def _next(self):
         with self._cv:
