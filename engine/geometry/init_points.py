@@ -185,7 +185,15 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
     fuse = fusion_cache if fusion_cache is not None else (lambda cams: capture_fusion(capture, cams))
     fa, fb, info = fuse(rgb_cameras(capture))  # raises StereoUnavailable
     found = static_planes([fa, fb]) if planes or backdrop > 0 else []
-    xyz, rgb, counts = fused_points([fa, fb], instant=instant, fill=fill_depth if fill_stride > 0 else None,
+    filled: dict[str, np.ndarray] = {}
+
+    def static_filled(f) -> np.ndarray:  # one hole fill per camera, for the cloud and its backdrop
+        if f.camera not in filled:
+            ok = np.isfinite(f.static_depth)
+            filled[f.camera] = fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok)
+        return filled[f.camera]
+
+    xyz, rgb, counts = fused_points([fa, fb], instant=instant, fill=static_filled if fill_stride > 0 else None,
                                     fill_stride=fill_stride, planes=found if planes else None)
     info = {**info, **counts, "points": int(len(xyz)), "matcher": "sgbm", "filled": counts["filled"]}
     if found:
@@ -199,15 +207,14 @@ def sgbm_points(capture, *, fill_stride: int = 3, instant: int = 0, backdrop: fl
         parts = []
         far = 3.0 * float(info["depth_p5_p95"][1]) if "depth_p5_p95" in info else np.inf
         for f in (fa, fb):
-            ok = np.isfinite(f.static_depth)
-            filled = fill_depth(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok) if ok.any() else None
+            depth = static_filled(f) if np.isfinite(f.static_depth).any() else None
             stride = backdrop_stride(f.view.intrinsics.width)
             if found:  # on the planes; beyond their extent, the depth continued from the image
-                cont = continued_depth(f.view, filled, backdrop) if filled is not None else None
+                cont = continued_depth(f.view, depth, backdrop) if depth is not None else None
                 parts.append(plane_backdrop_points(f.view, np.median(f.images, axis=0), found, backdrop, max_depth=far,
                                                    stride=stride, continued=cont))
-            elif filled is not None:
-                parts.append(backdrop_points(f, filled, backdrop, stride=stride))
+            elif depth is not None:
+                parts.append(backdrop_points(f, depth, backdrop, stride=stride))
         if parts:
             back = InitPoints(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), "backdrop")
     return InitPoints(xyz, rgb, "stereo", info), back

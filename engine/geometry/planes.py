@@ -75,12 +75,6 @@ def _extent(pts: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return axes, q[0], q[1]
 
 
-def _span(pts: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """5-95 % extent [2] of points [N, 3] along two orthogonal axes in the plane of ``normal``."""
-    _, lo, hi = _extent(pts, normal)
-    return hi - lo
-
-
 def fit_planes(xyz: np.ndarray, threshold: float, *, max_planes: int = 3, min_share: float = 0.05,
                min_span: float = 0.6, eyes: np.ndarray | None = None, max_behind: float = 0.1,
                iterations: int = 400, max_points: int = 20000, seed: int = 0) -> list[Plane]:
@@ -105,6 +99,7 @@ def fit_planes(xyz: np.ndarray, threshold: float, *, max_planes: int = 3, min_sh
     if len(pts) > max_points:
         pts = pts[rng.choice(len(pts), max_points, replace=False)]
     total, cloud = len(pts), pts
+    eyes = None if eyes is None else np.asarray(eyes, np.float64)
     planes: list[Plane] = []
     for _ in range(2 * max_planes):  # an object's face found on the way is set aside, not kept
         if len(planes) >= max_planes or len(pts) < max(3, min_share * total):
@@ -131,18 +126,19 @@ def fit_planes(xyz: np.ndarray, threshold: float, *, max_planes: int = 3, min_sh
         inl = np.abs(pts @ normal + offset) <= threshold
         if inl.sum() < min_share * total:
             break
-        spread = _span(pts[inl], normal) / np.maximum(_span(cloud, normal), 1e-9)
+        axes, lo, hi = _extent(cloud, normal)
+        _, inl_lo, inl_hi = _extent(pts[inl], normal)
+        spread = (inl_hi - inl_lo) / np.maximum(hi - lo, 1e-9)
         # a plane almost parallel to a kept one is what the first fit left of the same surface
         parallel = any(abs(float(normal @ p.normal)) > PARALLEL_COS for p in planes)
         behind = 0.0
         if eyes is not None:  # the share of the cloud on the far side of the plane from the cameras
-            side = np.sign(np.mean(np.asarray(eyes, np.float64) @ normal + offset)) or 1.0
+            side = np.sign(np.mean(eyes @ normal + offset)) or 1.0
             behind = float(((cloud @ normal + offset) * side < -3.0 * threshold).mean())
         # a textureless wall's own stereo scatters behind it in proportion to its support
         if spread.max() >= min_span and not parallel and behind <= max(max_behind, 1.5 * inl.sum() / total):
-            axes, lo, hi = _extent(cloud, normal)
             if eyes is not None:  # a floor runs on to the cameras' feet, where stereo has nothing
-                q = np.asarray(eyes, np.float64) @ axes.T
+                q = eyes @ axes.T
                 lo, hi = np.minimum(lo, q.min(0)), np.maximum(hi, q.max(0))
             planes.append(Plane(normal, offset, int(inl.sum()), (axes, lo, hi)))
         pts = pts[~inl]

@@ -102,18 +102,17 @@ def backdrop_points(fused, filled_depth: np.ndarray, fraction: float, stride: in
     px, py = int(round(fraction * k.width)), int(round(fraction * k.height))
     if px <= 0 and py <= 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
-    inv = np.where(filled_depth > 0, 1.0 / np.maximum(filled_depth, 1e-9), 0.0)
-    inv_ext = extrapolate_inverse_depth(inv, px, py)
+    depth_ext = continued_depth(fused.view, filled_depth, fraction)
     med = np.median(fused.images, axis=0).astype(np.float32)
     col = cv2.copyMakeBorder(med, py, py, px, px, cv2.BORDER_REPLICATE)
-    He, We = inv_ext.shape
+    He, We = depth_ext.shape
     ring = np.ones((He, We), bool)
     ring[py:py + k.height, px:px + k.width] = False
     grid = np.zeros_like(ring)
     grid[stride // 2::stride, stride // 2::stride] = True
     sel = ring & grid
     v, u = np.nonzero(sel)
-    d = 1.0 / inv_ext[v, u]
+    d = depth_ext[v, u]
     cam = np.stack([(u - px + 0.5 - k.cx) / k.fx * d, (v - py + 0.5 - k.cy) / k.fy * d, d], -1)
     c2w = np.linalg.inv(np.asarray(fused.view.viewmat, np.float64))
     xyz = cam @ c2w[:3, :3].T + c2w[:3, 3]

@@ -420,7 +420,7 @@ def backproject(view, depth: np.ndarray) -> np.ndarray:
 def fused_points(fused: list[FusedDepth], *, instant: int = 0, fill=None, fill_stride: int = 3, planes=None):
     """Initial cloud from fused stereo: every camera's static depth (coloured by the median
     image), plus what moves at ``instant`` (the canonical time), plus -- with ``fill`` (a
-    function ``(depth, ok) -> depth``) -- every ``fill_stride``-th pixel the stereo left
+    function ``FusedDepth -> depth``: its static depth, holes filled) -- every ``fill_stride``-th pixel the stereo left
     empty at an interpolated static depth, or on one of ``planes`` (:mod:`.planes`) where that
     agrees with the interpolation (:func:`~.planes.plane_fill`). Returns (xyz [N,3], rgb [N,3],
     counts dict)."""
@@ -440,7 +440,7 @@ def fused_points(fused: list[FusedDepth], *, instant: int = 0, fill=None, fill_s
             grid = np.zeros_like(ok)
             grid[fill_stride // 2::fill_stride, fill_stride // 2::fill_stride] = True
             extra = grid & ~ok & ~mv
-            dfill = fill(np.where(ok, f.static_depth, 0.0).astype(np.float32), ok)
+            dfill = fill(f)
             if planes:
                 dfill = plane_fill(f.view, dfill, ok, planes)
             pf = backproject(f.view, dfill)
