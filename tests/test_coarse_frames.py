@@ -31,6 +31,24 @@ def test_coarse_item_scales_camera_image_and_depth():
     assert coarse_item(it, 160) is it
 
 
+def test_coarse_item_carries_the_stereo_planes_at_its_size():
+    from engine.train.losses.geometry_losses import attach_stereo, lie_flat
+
+    it = _item()
+    d = it.pop("stereo_depth").numpy()
+    it.pop("stereo_mask")
+    attach_stereo([it], [(d, d > 0)], planes=True)               # two fronto-parallel walls at 1 m and 2 m
+    c = coarse_item(it, 80)
+    assert c["stereo_normal"].shape == (60, 80, 3) and c["stereo_offset"].shape == (60, 80)
+    assert torch.allclose(c["stereo_normal"][30, 60], torch.tensor([0.0, 0.0, -1.0]))
+    assert torch.allclose(c["stereo_offset"][30, 60], torch.tensor(-2.0))
+    assert torch.allclose(c["stereo_offset"][30, 10], torch.tensor(-1.0))
+    means = torch.tensor([[0.5, 0.0, 2.0], [-0.5, 0.0, 1.0]])   # one disc on each wall
+    disc, scales = torch.tensor([[1.0, 0, 0, 0]] * 2), torch.tensor([[0.02, 0.02, 0.001]] * 2)
+    assert float(lie_flat(means, disc, scales, c)) < 1e-2 and float(lie_flat(means, disc, scales, it)) < 1e-2
+    assert float(lie_flat(means + torch.tensor([0.0, 0.0, 0.02]), disc, scales, c)) > 0.3  # 2 cm off each wall
+
+
 def test_coarse_items_are_made_once_and_only_for_wide_frames():
     items = CoarseItems(80)
     it = _item()

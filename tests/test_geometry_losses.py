@@ -97,16 +97,17 @@ def test_every_switch_takes_part_in_a_run(tmp_path, monkeypatch):
 
     monkeypatch.setattr(geometry_losses, "COVER_EVERY", 1)
     monkeypatch.setattr(geometry_losses, "BACKDROP_OPACITY", 0.0)  # the one post-step hook below is opacity decay
-    on = {"opacity_decay": 0.99, "lambda_depth": 0.1, "lambda_cover": 0.5, "init": "stereo", "init_backdrop": 0.2}
+    on = {"opacity_decay": 0.99, "lambda_depth": 0.1, "lambda_cover": 0.5, "init": "stereo", "init_backdrop": 0.2,
+          "losses.flat": 0.02}
     names = [t.name for t in default_loss_terms(get_preset("fast", on))]
-    assert {"stereo_depth", "cover"} <= set(names)
+    assert {"stereo_depth", "cover", "flat"} <= set(names)
     cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
     tr = Trainer(cap, get_preset("fast", {**on, "iterations": 4}), device="cpu", rgb_only=True)
     tr.init_model()
     assert tr.init_info["method"] == "stereo" and tr.init_info["backdrop"] > 0
-    assert any("stereo_depth" in it for it in tr.items)
+    assert any("stereo_depth" in it for it in tr.items) and any("stereo_normal" in it for it in tr.items)
     out = tr.step(0)
-    assert {"stereo_depth", "cover"} <= set(out["losses"])
+    assert {"stereo_depth", "cover", "flat"} <= set(out["losses"])
     assert len(tr.post_step_hooks) == 1  # opacity decay, applied to what the step's view saw
     g = tr.model.gaussians
     n = g.num_gaussians
@@ -365,3 +366,70 @@ def test_cover_grad_names_are_checked():
     assert cover_grad_attrs("opacities+means") == ("opacities", "means")
     with pytest.raises(ValueError, match="opacity"):
         cover_grad_attrs("opacity+means")
+
+
+def test_depth_normals_fit_a_tilted_plane_and_drop_depth_edges():
+    from engine.geometry.depth_priors import depth_normals
+
+    k = np.array([[70.0, 0, 40], [0, 70.0, 30], [0, 0, 1]])
+    v, u = np.mgrid[0:60, 0:80] + 0.5
+    x = (u - 40) / 70
+    z = 2.0 / (1 - 0.5 * x)                                    # the plane z = 2 + 0.5 X (camera space)
+    n, ok, off = depth_normals(z, np.ones_like(z, bool), k)
+    assert np.allclose(off[ok], -2.0 / np.linalg.norm([0.5, 0.0, -1.0]), atol=1e-3)  # n . x = off on the plane
+    want = np.array([0.5, 0.0, -1.0]) / np.linalg.norm([0.5, 0.0, -1.0])  # facing the camera
+    assert ok[5:-5, 5:-5].all() and np.allclose(n[ok], want, atol=1e-3)
+    step = np.where(u < 40, 2.0, 3.0)                            # two walls, one a metre behind the other
+    n, ok, _ = depth_normals(step, np.ones_like(step, bool), k)
+    assert not ok[:, 37:42].any() and ok[10:50, 10:36].all() and ok[10:50, 42:70].all()  # none across the edge
+    assert np.allclose(n[ok], [0, 0, -1], atol=1e-6)
+    sparse = np.random.default_rng(0).random(z.shape) < 0.2    # too few known pixels in a box: no normal
+    assert not depth_normals(z, sparse, k)[1].any()
+
+
+def _disc_item(normal_world, offset):
+    """A camera at the origin looking down +z (OpenCV), a wall at z = 2 whose stereo plane is given."""
+    h, w = 30, 40
+    return {"viewmat": torch.eye(4)[None], "K": torch.tensor([[[40.0, 0, 20], [0, 40.0, 15], [0, 0, 1]]]),
+            "width": w, "height": h, "stereo_depth": torch.full((h, w), 2.0),
+            "stereo_normal": torch.tensor(normal_world, dtype=torch.float32).expand(h, w, 3).contiguous(),
+            "stereo_offset": torch.full((h, w), float(offset))}
+
+
+def test_lie_flat_is_zero_for_a_disc_on_the_surface_and_trains_fins_and_strays_onto_it():
+    from engine.train.losses.geometry_losses import lie_flat
+
+    item = _disc_item([0.0, 0.0, -1.0], -2.0)                        # the plane -z = -2
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.5]])  # on, on, 25 % behind
+    disc = torch.tensor([[1.0, 0, 0, 0]] * 3)                          # axes = world axes: thin along z
+    scales = torch.tensor([[0.02, 0.02, 0.001]] * 3)
+    assert float(lie_flat(means, disc, scales, item)) < 1e-2
+    # a fin: the same shape turned 80 degrees about y, nearly thin along x and standing out of the wall
+    a = np.radians(80) / 2
+    fin = torch.tensor([[np.cos(a), 0, np.sin(a), 0]] * 3, dtype=torch.float32, requires_grad=True)
+    assert abs(float(lie_flat(means, fin, scales, item).detach()) - 0.5) < 0.03
+    assert lie_flat(means[2:], fin[2:], scales[2:], item) is None  # behind the surface: not on it
+    assert lie_flat(means, disc, scales, {**item, "stereo_normal": torch.zeros(30, 40, 3)}) is None
+    # a disc 1.5 cm in front of the wall (within the band): its offset counts, as a share of its spread
+    stray = means.clone()
+    stray[:2, 2] = 1.985
+    assert 0.2 < float(lie_flat(stray, disc, scales, item)) < 0.25  # 1.5^2 / (2 * 2^2 + 1.5^2)
+    stray.requires_grad_(True)
+    opt = torch.optim.Adam([fin, stray], lr=0.002)
+    for _ in range(400):
+        opt.zero_grad()
+        lie_flat(stray, fin, scales, item).backward()
+        opt.step()
+    assert float(lie_flat(stray, fin, scales, item).detach()) < 0.02  # turned to lie on the wall, and onto it
+    assert torch.allclose(stray[:2, 2].detach(), torch.tensor(2.0), atol=2e-3)
+
+
+def test_in_gaussian_frame_matches_the_rotation_matrices():
+    from engine.scene.gaussians import quat_to_rotmat
+    from engine.train.losses.geometry_losses import in_gaussian_frame
+
+    g = torch.Generator().manual_seed(4)
+    q = torch.randn(64, 4, generator=g, dtype=torch.float64) * 3
+    v = torch.randn(64, 3, generator=g, dtype=torch.float64)
+    want = (quat_to_rotmat(q).transpose(1, 2) @ v[:, :, None])[..., 0]
+    assert torch.allclose(in_gaussian_frame(q, v), want, atol=1e-12)

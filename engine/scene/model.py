@@ -138,21 +138,12 @@ class Model4D(nn.Module):
             dm, dq = dm * keep, dq * keep
         return dm, dq
 
-    def attributes(self, t: float, campos=None, fine: torch.Tensor | None = None,
-                   motion_only: bool = False) -> dict:
-        """Deformed Gaussians at ``t``: means, quats, scales (linear), opacities, colors.
-
-        ``motion_only``: the canonical Gaussians enter detached, so a loss on this render
-        trains the deformation field only (used for between-frame supervision)."""
+    def attributes(self, t: float, campos=None, fine: torch.Tensor | None = None) -> dict:
+        """Deformed Gaussians at ``t``: means, quats, scales (linear), opacities, colors."""
         g = self.gaussians
         means, quats, log_scales, opac = g.means, g.quats, g.log_scales, g.opacity_logits
-        sh = None
-        if motion_only:
-            means, quats, log_scales, opac = means.detach(), quats.detach(), log_scales.detach(), opac.detach()
-            sh = g.sh.detach()
         color_delta = None
         if self.use_deformation and self.trajectory is not None:
-            # the trajectory is motion: it stays trained under ``motion_only``
             dm, dq = self.trajectory_at(t, self.effective_static_mask())
             means, quats = means + dm, quats + dq
         if self.use_deformation and self.deformation is not None:
@@ -161,20 +152,18 @@ class Model4D(nn.Module):
             d = self.deformation(means, quats, log_scales, opac, t, fine=fine, mask=mask)
             means, quats, log_scales, opac = d["means"], d["quats"], d["log_scales"], d["opacity_logits"]
             color_delta = d["color_delta"]
-        colors = g.colors(means, campos, sh=sh)
+        colors = g.colors(means, campos)
         if color_delta is not None:
             colors = (colors + color_delta).clamp_min(0.0)
         opacities = torch.sigmoid(opac)
         if self.use_deformation and TIME_CENTER in g.extra_lrs:
             c, s = getattr(g, TIME_CENTER), getattr(g, TIME_LOG_SCALE)
-            if motion_only:
-                c, s = c.detach(), s.detach()
             opacities = opacities * temporal_opacity(c, s, t)
         return {"means": means, "quats": quats, "scales": torch.exp(log_scales),
                 "opacities": opacities, "colors": colors}
 
     def render(self, vt: dict, t: float | None = None, *, background=None, fine=None, backend="auto",
-               render_depth: bool = True, motion_only: bool = False, grad_rows: torch.Tensor | None = None,
+               render_depth: bool = True, grad_rows: torch.Tensor | None = None,
                grad_attrs: tuple | None = None):
         """Render one view (``view_tensors`` dict) at time ``t`` (default: the view's time).
 
@@ -185,7 +174,7 @@ class Model4D(nn.Module):
         Returns (rgb [1,H,W,3], alpha [1,H,W,1], meta, attributes).
         """
         t = vt["time"] if t is None else float(t)
-        attrs = self.attributes(t, campos=vt["campos"], fine=fine, motion_only=motion_only)
+        attrs = self.attributes(t, campos=vt["campos"], fine=fine)
         if grad_attrs is not None:
             kept = {k: v if k in grad_attrs else v.detach() for k, v in attrs.items()}
             if "size" in grad_attrs and "scales" not in grad_attrs:

@@ -80,6 +80,7 @@ class LossConfig:
     opacity_decay: float = 0.995      # x opacity of the Gaussians a step sees (1: off); floaters fade and are pruned
     opacity_decay_until: float | None = None  # share of the steps the decay lasts (None: densify.stop)
     cover: float = 0.5                # cracks at a virtual view ~20 deg off the step's frame (0: off)
+    flat: float = 0.02                # Gaussians on the stereo surface lie flat in its local plane (0: off)
     cover_grad: str = "all"           # what it trains: all | "+"-joined means, quats, scales, size, opacities, colors
 
 
@@ -111,7 +112,6 @@ class SpikeConfig:
     between_scale: float = 0.5        # between-frame renders at this share of the RGB resolution
     time_smooth_weight: float = 0.1   # the HexPlane's time smoothness with guidance (finer time cells)
     between_curriculum: bool = True   # between-frame instants only up to the time curriculum's front
-    between_motion_only: bool = False  # between-frame losses train the motion only
     static_prior: bool = True         # Gaussians where the spike view never changes skip the HexPlane field
     skip_static: bool = True          # no between-frame renders in spike windows without change
     fine_change_gate: bool = True     # fine feature only where / when the spike view changes
@@ -215,7 +215,7 @@ FLAT_NAMES = {
     "block_loss_weight": "spike.block_loss_weight", "block_interp": "spike.block_interp",
     "between_every": "spike.between_every", "between_colocated_p": "spike.between_colocated_p",
     "between_scale": "spike.between_scale", "spike_time_smooth_weight": "spike.time_smooth_weight",
-    "between_curriculum": "spike.between_curriculum", "between_motion_only": "spike.between_motion_only",
+    "between_curriculum": "spike.between_curriculum",
     "spike_static_prior": "spike.static_prior", "spike_skip_static": "spike.skip_static",
     "fine_change_gate": "spike.fine_change_gate", "quiet_curves": "spike.quiet_curves",
     "spike_flow_weight": "spike_flow.weight", "spike_flow_warm": "spike_flow.warm", "spike_flow_fit": "spike_flow.fit",

@@ -17,9 +17,9 @@ COARSE_MAX_WIDTH = 540  # half the paper's 1080-px RGB frames
 
 
 def coarse_item(item: dict, max_width: int = COARSE_MAX_WIDTH) -> dict:
-    """``item`` (a trainer frame: view tensors, image [1, H, W, 3], optional stereo depth and mask
-    [H, W]) at most ``max_width`` wide: the camera scaled (same field of view), the image
-    area-averaged, the depth prior sampled nearest (no depth between two surfaces). The item
+    """``item`` (a trainer frame: view tensors, image [1, H, W, 3], optional stereo depth, mask and
+    local planes [H, W(, 3)]) at most ``max_width`` wide: the camera scaled (same field of view), the image
+    area-averaged, the depth prior and planes sampled nearest (no depth between two surfaces). The item
     itself when it is no wider."""
     if item["width"] <= max_width:
         return item
@@ -31,6 +31,10 @@ def coarse_item(item: dict, max_width: int = COARSE_MAX_WIDTH) -> dict:
         m = item["stereo_mask"][None, None].float()
         out["stereo_depth"] = F.interpolate(d, size=(h, w), mode="nearest")[0, 0]
         out["stereo_mask"] = F.interpolate(m, size=(h, w), mode="nearest")[0, 0] > 0.5
+    if "stereo_normal" in item:  # the local planes of engine.train.losses.geometry_losses.lie_flat
+        n = item["stereo_normal"].permute(2, 0, 1)[None]
+        out["stereo_normal"] = F.interpolate(n, size=(h, w), mode="nearest")[0].permute(1, 2, 0).contiguous()
+        out["stereo_offset"] = F.interpolate(item["stereo_offset"][None, None], size=(h, w), mode="nearest")[0, 0]
     return out
 
 

@@ -329,8 +329,7 @@ class SpikeGuidance:
         vt = scaled_view(item, float(self.cfg.spike.between_scale))
         vt["time"] = inst.time
         scale = vt["width"] / item["width"]
-        rgb, alpha, meta, attrs = ctx.run.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
-                                                           motion_only=bool(self.cfg.spike.between_motion_only))
+        rgb, alpha, meta, attrs = ctx.run.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH)
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta}
         ctx.__dict__["_between"] = out
         return out

@@ -42,7 +42,7 @@ from ..frames.coarse import CoarseItems
 from ..guidance.quiet_curves import quiet_curves_factory
 from ..guidance.spike_flow import spike_flow_factory
 from ..guidance.spike_guidance import guidance_factory, spike_stream_info
-from ..losses.geometry_losses import geometry_post_step_hooks
+from ..losses.geometry_losses import attach_stereo, geometry_post_step_hooks
 from ..losses.terms import (
     MOTIONS,
     LossTerm,
@@ -129,14 +129,10 @@ class Trainer:
             vt.update(frame_item_fields(f, cfg, self.device))  # synthetic (baseline) frames: knot, weight
             self.items.append(vt)
         self.coarse = CoarseItems()
-        if cfg.losses.depth > 0:  # issue 14: fused SGBM depth at every RGB instant
+        if cfg.losses.depth > 0 or cfg.losses.flat > 0:  # issue 14: fused SGBM depth at every RGB instant
             priors = stereo_depth_priors(capture, frames, fusion_cache=self.fusion_cache)
             self.depth_prior_note = priors.pop("_unavailable", None)  # recorded in run.json's init
-            for f, it in zip(frames, self.items):
-                if id(f) in priors and priors[id(f)][1].sum() >= 16:
-                    d, ok = priors[id(f)]
-                    it["stereo_depth"] = torch.from_numpy(d).to(self.device)
-                    it["stereo_mask"] = torch.from_numpy(ok).to(self.device)
+            attach_stereo(self.items, [priors.get(id(f)) for f in frames], planes=cfg.losses.flat > 0)
         self.frame_times = sorted({round(float(it["time"]), 9) for it in self.items if it["knot"]})
         tr = getattr(capture, "time_range", None)
         self.time_range = (float(tr[0]), float(tr[1])) if tr else (min(self.frame_times), max(self.frame_times))

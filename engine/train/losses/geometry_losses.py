@@ -21,6 +21,9 @@ docs/experiments/two-view-geometry.md):
   (``Model4D.render(grad_rows=...)``), and only their ``cover_grad`` attributes. A floor seen at a grazing angle
   by both train cameras is made of blobs that leave gaps 20 deg above it (docs/experiments/overfit-more-steps.md);
   the photometric loss never sees those gaps.
+* ``losses.flat`` -- Gaussians on the stereo surface lie flat in it (:func:`lie_flat`): a
+  horizontal baseline leaves horizontal edges free to be fins or stacked discs, which smear seen
+  from above.
 Functions take and return tensors with documented shapes; the run calls
 :func:`geometry_loss_terms` (loss list) and :func:`geometry_post_step_hooks`.
 """
@@ -33,6 +36,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ...geometry.depth_priors import world_planes
 from ...scene.model import scaled_view
 from ..config import opacity_decay_window
 
@@ -200,6 +204,80 @@ def cover_grad_attrs(text: str) -> tuple | None:
     return names
 
 
+FLAT_BAND = 0.03  # a Gaussian lies on the stereo surface when its depth is within this share of it
+
+
+def in_gaussian_frame(quats: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+    """R(q)^T v for wxyz quaternions [N,4] (any norm) and vectors [N,3]: v's components along each
+    Gaussian's axes, ``quat_to_rotmat(q).transpose(1, 2) @ v`` without the matrices (a fifth of the
+    autograd nodes): R^T v = v - 2w (u x v) + 2 u x (u x v), q = (w, u) unit."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, u = q[:, :1], q[:, 1:]
+    c = torch.linalg.cross(u, vectors, dim=-1)
+    return vectors - 2.0 * w * c + 2.0 * torch.linalg.cross(u, c, dim=-1)
+
+
+def lie_flat(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, item: dict,
+             band: float = FLAT_BAND) -> torch.Tensor | None:
+    """Mean over the Gaussians on the item's stereo surface of their second moment about its local
+    plane along the plane's normal, as a share of their whole spread:
+    (sigma_n^2 + delta^2) / (trace(Sigma) + delta^2), delta the centre's distance to the plane.
+    0 for a disc lying in the plane, 1/3 for a ball centred on it, 1/2 for a fin standing out of it.
+
+    The planes are ``item["stereo_normal"]`` (world [h,w,3], zero where unknown) and
+    ``stereo_offset`` ([h,w]: the plane is n . x = offset), fitted to ``stereo_depth`` [h,w] by
+    :func:`engine.geometry.depth_priors.depth_normals`; "on the surface": the centre projects onto
+    a pixel with a plane and its depth is within ``band`` of the stereo depth there.
+    Two cameras on a horizontal baseline cannot place what runs along their epipolar lines: a
+    horizontal edge is the same in both views whether its Gaussians are discs on the wall, fins
+    standing out of it or discs in front of and behind it, and from above all but the first smear
+    it (docs/experiments/lie-flat.md)."""
+    normal, depth, offset = item.get("stereo_normal"), item.get("stereo_depth"), item.get("stereo_offset")
+    if normal is None or depth is None or offset is None or normal.shape[:2] != depth.shape:
+        return None
+    vm, K = item["viewmat"][0].to(means.dtype), item["K"][0].to(means.dtype)
+    h, w = depth.shape
+    with torch.no_grad():
+        cam = means.detach() @ vm[:3, :3].T + vm[:3, 3]
+        z = cam[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = ((K[0, 0] * cam[:, 0] / zs + K[0, 2]) * (w / float(item["width"]))).floor().long()
+        v = ((K[1, 1] * cam[:, 1] / zs + K[1, 2]) * (h / float(item["height"]))).floor().long()
+        inside = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        pix = (v.clamp(0, h - 1) * w + u.clamp(0, w - 1))
+        d = depth.reshape(-1)[pix]
+        n = normal.reshape(-1, 3)[pix]
+        on = inside & (n.abs().sum(-1) > 0.5) & ((z - d).abs() <= band * d)
+        rows = on.nonzero(as_tuple=True)[0]
+    if rows.numel() == 0:
+        return None
+    nr = n[rows]
+    s2 = scales[rows] ** 2
+    along = in_gaussian_frame(quats[rows], nr) ** 2  # (axis_k . n)^2
+    delta2 = ((means[rows] * nr).sum(-1) - offset.reshape(-1)[pix[rows]]) ** 2
+    return (((s2 * along).sum(-1) + delta2) / (s2.sum(-1) + delta2).clamp_min(1e-20)).mean()
+
+
+def attach_stereo(items: list[dict], priors: list, *, planes: bool, min_pixels: int = 16) -> None:
+    """In place: each train item gets its fused stereo depth (``stereo_depth`` [H,W], ``stereo_mask``)
+    from ``priors`` (per item: (depth, mask) numpy or None; kept with at least ``min_pixels`` known),
+    and with ``planes`` the local planes :func:`lie_flat` reads (``stereo_normal``, ``stereo_offset``)."""
+    for it, prior in zip(items, priors):
+        if prior is None or int(prior[1].sum()) < min_pixels:
+            continue
+        d, ok = prior
+        dev = it["viewmat"].device
+        it["stereo_depth"], it["stereo_mask"] = torch.from_numpy(d).to(dev), torch.from_numpy(ok).to(dev)
+        if planes:
+            n, off = world_planes(d, ok, it["K"][0].cpu().numpy(), it["viewmat"][0].cpu().numpy())
+            it["stereo_normal"], it["stereo_offset"] = torch.from_numpy(n).to(dev), torch.from_numpy(off).to(dev)
+
+
+def _flat(ctx):
+    a = ctx.attrs
+    return lie_flat(a["means"], a["quats"], a["scales"], ctx.item)
+
+
 def geometry_loss_terms(cfg, LossTerm) -> list:
     """The enabled geometry terms as ``LossTerm`` (the run's class, passed in to keep
     this module free of the run)."""
@@ -208,6 +286,8 @@ def geometry_loss_terms(cfg, LossTerm) -> list:
         # parsed once per run; a wrong name fails here, before the first step
         attrs = cover_grad_attrs(cfg.losses.cover_grad)
         terms.append(LossTerm("cover", cfg.losses.cover, functools.partial(_cover, grad_attrs=attrs)))
+    if cfg.losses.flat > 0:
+        terms.append(LossTerm("flat", cfg.losses.flat, _flat))
     return terms
 
 
