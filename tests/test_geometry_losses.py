@@ -433,3 +433,26 @@ def test_in_gaussian_frame_matches_the_rotation_matrices():
     v = torch.randn(64, 3, generator=g, dtype=torch.float64)
     want = (quat_to_rotmat(q).transpose(1, 2) @ v[:, :, None])[..., 0]
     assert torch.allclose(in_gaussian_frame(q, v), want, atol=1e-12)
+
+
+def test_world_planes_of_a_wide_frame_are_fitted_on_a_subsample_and_agree():
+    from engine.geometry.depth_priors import world_planes
+
+    h, w = 240, 900
+    k = np.array([[700.0, 0, 450.3], [0, 700.0, 119.6], [0, 0, 1]])
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    x, y = (u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1]
+    depth = np.where(u < 450, 2.0, 3.0 / (1 - 0.4 * x - 0.2 * y))  # a wall, a metre-deep step, a tilted wall
+    vm = np.eye(4)
+    vm[:3, 3] = [0.1, -0.2, 0.3]
+    full = world_planes(depth, np.ones_like(depth, bool), k, vm, max_width=10_000)
+    sub = world_planes(depth, np.ones_like(depth, bool), k, vm)              # every 3rd pixel
+    have = (np.abs(full[0]).sum(-1) > 0) & (np.abs(sub[0]).sum(-1) > 0)
+    away = np.abs(u - 450) > 60                                              # the boxes (56 / 57 px) clear the step
+    assert have[away].mean() > 0.9
+    assert np.allclose(full[0][have & away], sub[0][have & away], atol=1e-4)
+    assert np.allclose(full[1][have & away], sub[1][have & away], atol=1e-4)
+    # the plane holds the frame's back-projected points: n . x = offset in world space
+    cam = np.stack([x * depth, y * depth, depth], -1)
+    world = (cam - vm[:3, 3]) @ vm[:3, :3]
+    assert np.allclose((sub[0] * world).sum(-1)[have & away], sub[1][have & away], atol=1e-4)

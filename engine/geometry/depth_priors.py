@@ -117,10 +117,31 @@ def depth_normals(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, *, window:
     return normal.astype(np.float32), ok, np.einsum("hwi,hwi->hw", normal, mean).astype(np.float32)
 
 
-def world_planes(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, viewmat: np.ndarray) -> tuple:
+PLANES_MAX_WIDTH = 400  # local planes are fitted on every k-th pixel above this width (1080x720: 1.4 s a frame)
+
+
+def world_planes(depth: np.ndarray, mask: np.ndarray, K: np.ndarray, viewmat: np.ndarray,
+                 max_width: int = PLANES_MAX_WIDTH) -> tuple:
     """:func:`depth_normals` in world space: (normals [H,W,3], offsets [H,W]) float32, the local plane
     at each pixel being n . x = offset (zero normals where there is none); ``viewmat`` [4,4] is the
-    OpenCV world-to-camera matrix (x_cam = R x_world + t)."""
-    n, _, off = depth_normals(depth, mask, np.asarray(K, dtype=np.float64))
+    OpenCV world-to-camera matrix (x_cam = R x_world + t). A depth map wider than ``max_width`` is
+    fitted on every k-th pixel (the box keeps its share of the width) and each plane is given to the
+    k x k pixels around its sample: the planes are metres across, the fit costs a 3x3 eigen-problem
+    per pixel."""
+    K = np.asarray(K, dtype=np.float64)
+    H, W = depth.shape
+    k = max(1, -(-W // int(max_width)))
+    if k > 1:  # pixel i of the subsample is pixel k i + k // 2 of the frame
+        Ks = K.copy()
+        Ks[0, 0], Ks[1, 1] = K[0, 0] / k, K[1, 1] / k
+        Ks[0, 2], Ks[1, 2] = (K[0, 2] - k // 2 - 0.5) / k + 0.5, (K[1, 2] - k // 2 - 0.5) / k + 0.5
+        n, _, off = depth_normals(depth[k // 2::k, k // 2::k], mask[k // 2::k, k // 2::k], Ks)
+        n = np.repeat(np.repeat(n, k, 0), k, 1)[:H, :W]
+        off = np.repeat(np.repeat(off, k, 0), k, 1)[:H, :W]
+        if n.shape[:2] != (H, W):  # fewer than H / k samples: pad with "no plane"
+            n = np.pad(n, ((0, H - n.shape[0]), (0, W - n.shape[1]), (0, 0)))
+            off = np.pad(off, ((0, H - off.shape[0]), (0, W - off.shape[1])))
+    else:
+        n, _, off = depth_normals(depth, mask, K)
     vm = np.asarray(viewmat, dtype=np.float64)
     return (n @ vm[:3, :3]).astype(np.float32), (off - n @ vm[:3, 3]).astype(np.float32)
