@@ -34,10 +34,11 @@ def test_coarse_item_scales_camera_image_and_depth():
 def test_coarse_item_carries_the_stereo_planes_at_its_size():
     from engine.train.losses.geometry_losses import attach_stereo, lie_flat
 
-    it = _item()
+    it, partner = _item(), _item()
+    partner.update(camera="rgb1", campos=torch.tensor([0.3, 0.0, 0.0]))
     d = it.pop("stereo_depth").numpy()
     it.pop("stereo_mask")
-    attach_stereo([it], [(d, d > 0)], planes=True)               # two fronto-parallel walls at 1 m and 2 m
+    attach_stereo([it, partner], [(d, d > 0), None], planes=True)  # two fronto-parallel walls at 1 m and 2 m
     c = coarse_item(it, 80)
     assert c["stereo_normal"].shape == (60, 80, 3) and c["stereo_offset"].shape == (60, 80)
     assert torch.allclose(c["stereo_normal"][30, 60], torch.tensor([0.0, 0.0, -1.0]))
@@ -76,3 +77,19 @@ def test_static_stage_trains_wide_frames_coarse(demo_capture, tmp_path, monkeypa
     s = train(demo_capture, tmp_path / "run", overrides={"schedule.iterations": 20}, rgb_only=True)
     assert s["status"] == "finished" and np.isfinite(s["loss"])
     assert (80, 60) in sizes and (160, 120) in sizes
+
+
+def test_stereo_planes_only_where_the_pair_resolves_depth():
+    from engine.train.losses.geometry_losses import PLANE_MIN_DISPARITY, attach_stereo
+
+    it, partner = _item(), _item()                                 # fx = 100 px, walls at 1 m and 2 m
+    d = it.pop("stereo_depth").numpy()
+    it.pop("stereo_mask")
+    partner.update(camera="rgb1", campos=torch.tensor([1.5 * PLANE_MIN_DISPARITY / 100.0, 0.0, 0.0]))
+    attach_stereo([it, partner], [(d, d > 0), None], planes=True)  # disparity 12 px at 1 m, 6 px at 2 m
+    has = it["stereo_normal"].abs().sum(-1) > 0
+    assert has[:, 10:70].all() and not has[:, 90:].any()
+    alone = _item()
+    alone.pop("stereo_depth"), alone.pop("stereo_mask")
+    attach_stereo([alone], [(d, d > 0)], planes=True)              # no partner camera: no planes
+    assert not (alone["stereo_normal"].abs().sum(-1) > 0).any() and "stereo_depth" in alone

@@ -101,7 +101,9 @@ def test_every_switch_takes_part_in_a_run(tmp_path, monkeypatch):
           "losses.flat": 0.02}
     names = [t.name for t in default_loss_terms(get_preset("fast", on))]
     assert {"stereo_depth", "cover", "flat"} <= set(names)
-    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0))
+    # a 0.6 m baseline: the pair resolves the set's depth (>= 8 px of disparity) and the planes are fitted
+    cap = load_capture(write_synthetic_capture(tmp_path / "cap", width=48, height=36, n_rgb=2, eval_fps=30.0,
+                                               baseline=0.6))
     tr = Trainer(cap, get_preset("fast", {**on, "iterations": 4}), device="cpu", rgb_only=True)
     tr.init_model()
     assert tr.init_info["method"] == "stereo" and tr.init_info["backdrop"] > 0

@@ -258,10 +258,25 @@ def lie_flat(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, ite
     return (((s2 * along).sum(-1) + delta2) / (s2.sum(-1) + delta2).clamp_min(1e-20)).mean()
 
 
+# planes only where the pair's disparity is at least this many pixels: there one pixel of matching
+# error moves the depth by at most 1/8, four times FLAT_BAND (a 0.08 m baseline 2.7 m away at 160x120
+# has 4 px, and its stereo planes were 47 % off: docs/experiments/lie-flat.md)
+PLANE_MIN_DISPARITY = 8.0
+
+
+def _partner_baseline(items: list[dict], it: dict) -> float:
+    """Distance (m) from the item's camera to the nearest other train camera at the same instant (0: none)."""
+    t = round(float(it["time"]), 6)
+    others = [float((o["campos"] - it["campos"]).norm()) for o in items
+              if o.get("camera") != it.get("camera") and round(float(o["time"]), 6) == t]
+    return min(others) if others else 0.0
+
+
 def attach_stereo(items: list[dict], priors: list, *, planes: bool, min_pixels: int = 16) -> None:
     """In place: each train item gets its fused stereo depth (``stereo_depth`` [H,W], ``stereo_mask``)
     from ``priors`` (per item: (depth, mask) numpy or None; kept with at least ``min_pixels`` known),
-    and with ``planes`` the local planes :func:`lie_flat` reads (``stereo_normal``, ``stereo_offset``)."""
+    and with ``planes`` the local planes :func:`lie_flat` reads (``stereo_normal``, ``stereo_offset``),
+    fitted where the pair's disparity is at least :data:`PLANE_MIN_DISPARITY` pixels."""
     for it, prior in zip(items, priors):
         if prior is None or int(prior[1].sum()) < min_pixels:
             continue
@@ -269,7 +284,9 @@ def attach_stereo(items: list[dict], priors: list, *, planes: bool, min_pixels: 
         dev = it["viewmat"].device
         it["stereo_depth"], it["stereo_mask"] = torch.from_numpy(d).to(dev), torch.from_numpy(ok).to(dev)
         if planes:
-            n, off = world_planes(d, ok, it["K"][0].cpu().numpy(), it["viewmat"][0].cpu().numpy())
+            K = it["K"][0].cpu().numpy()
+            near = ok & (d <= float(K[0, 0]) * _partner_baseline(items, it) / PLANE_MIN_DISPARITY)
+            n, off = world_planes(d, near, K, it["viewmat"][0].cpu().numpy())
             it["stereo_normal"], it["stereo_offset"] = torch.from_numpy(n).to(dev), torch.from_numpy(off).to(dev)
 
 
