@@ -41,6 +41,17 @@ class Projected:
     radii_xy: torch.Tensor  # [C,N,2] int32 per-axis radii (binning box); 0 where culled
 
 
+def pinhole_project(x: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection of world points ``x`` [N, 3] -> (uv [N, 2], z [N]); ``viewmat``
+    [4, 4] world-to-camera, ``K`` [3, 3] (as :func:`engine.cameras.project_points`; z clamped at
+    1e-6 for the division only)."""
+    cam = x @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    zs = z.clamp_min(1e-6)
+    uv = torch.stack([K[0, 0] * cam[:, 0] / zs + K[0, 2], K[1, 1] * cam[:, 1] / zs + K[1, 2]], -1)
+    return uv, z
+
+
 def normalize_quats(quats: torch.Tensor) -> torch.Tensor:
     """wxyz quaternions -> unit quaternions; a zero quaternion becomes the identity safely."""
     n2 = (quats * quats).sum(-1, keepdim=True)

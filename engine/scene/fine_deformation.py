@@ -36,6 +36,7 @@ import torch.nn.functional as F
 
 from ..errors import RunError
 from ..io.capture import load_capture
+from ..raster.projection import pinhole_project
 from ..spike.features import SpikeWindowCache
 
 __all__ = ["sinusoidal_encoding", "SpikeTextureEncoder", "FineDeformation", "EncodedWindows", "SpikeFineEncoder",
@@ -85,13 +86,9 @@ def project_to_grid(means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
     ``viewmat`` is the OpenCV world-to-camera matrix (as the rasterizer takes)."""
     vm = torch.as_tensor(viewmat, dtype=means.dtype, device=means.device)
     Km = torch.as_tensor(K, dtype=means.dtype, device=means.device)
-    cam = means @ vm[:3, :3].T + vm[:3, 3]
-    z = cam[:, 2]
-    zs = z.clamp(min=1e-6)
-    u = Km[0, 0] * cam[:, 0] / zs + Km[0, 2]
-    v = Km[1, 1] * cam[:, 1] / zs + Km[1, 2]
-    gx = u / width * 2.0 - 1.0
-    gy = v / height * 2.0 - 1.0
+    uv, z = pinhole_project(means, vm, Km)
+    gx = uv[:, 0] / width * 2.0 - 1.0
+    gy = uv[:, 1] / height * 2.0 - 1.0
     grid = torch.stack([gx, gy], -1)
     vis = (z > 1e-3) & (gx.abs() <= 1.0) & (gy.abs() <= 1.0)
     return grid, vis

@@ -6,6 +6,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ...raster.projection import pinhole_project as project  # world points -> (uv, z)
+
 __all__ = ["sample_map", "project", "lift", "projected_flow_loss", "segment_basis", "fit_inner_residuals"]
 
 
@@ -18,16 +20,6 @@ def sample_map(img: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> t
     src = img.permute(2, 0, 1)[None].to(grid.dtype)
     out = F.grid_sample(src, grid, mode=mode, padding_mode="border", align_corners=False)
     return out[0, :, 0].T
-
-
-def project(x: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pinhole projection of world points ``x`` [N, 3] -> (uv [N, 2], z [N]); ``viewmat``
-    [4, 4] world-to-camera, ``K`` [3, 3] (as :func:`engine.cameras.project_points`)."""
-    cam = x @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
-    zs = z.clamp_min(1e-6)
-    uv = torch.stack([K[0, 0] * cam[:, 0] / zs + K[0, 2], K[1, 1] * cam[:, 1] / zs + K[1, 2]], -1)
-    return uv, z
 
 
 def projected_flow_loss(uv_t: torch.Tensor, target: torch.Tensor, beta: float = 1.0) -> torch.Tensor:

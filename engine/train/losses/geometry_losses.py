@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 
 from ...geometry.depth_priors import world_planes
+from ...raster.projection import pinhole_project
 from ...scene.model import scaled_view
 from ..config import opacity_decay_window
 
@@ -238,11 +239,9 @@ def lie_flat(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, ite
     vm, K = item["viewmat"][0].to(means.dtype), item["K"][0].to(means.dtype)
     h, w = depth.shape
     with torch.no_grad():
-        cam = means.detach() @ vm[:3, :3].T + vm[:3, 3]
-        z = cam[:, 2]
-        zs = z.clamp_min(1e-6)
-        u = ((K[0, 0] * cam[:, 0] / zs + K[0, 2]) * (w / float(item["width"]))).floor().long()
-        v = ((K[1, 1] * cam[:, 1] / zs + K[1, 2]) * (h / float(item["height"]))).floor().long()
+        uv, z = pinhole_project(means.detach(), vm, K)
+        u = (uv[:, 0] * (w / float(item["width"]))).floor().long()
+        v = (uv[:, 1] * (h / float(item["height"]))).floor().long()
         inside = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         pix = (v.clamp(0, h - 1) * w + u.clamp(0, w - 1))
         d = depth.reshape(-1)[pix]
@@ -264,11 +263,10 @@ def lie_flat(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, ite
 PLANE_MIN_DISPARITY = 8.0
 
 
-def _partner_baseline(items: list[dict], it: dict) -> float:
-    """Distance (m) from the item's camera to the nearest other train camera at the same instant (0: none)."""
-    t = round(float(it["time"]), 6)
-    others = [float((o["campos"] - it["campos"]).norm()) for o in items
-              if o.get("camera") != it.get("camera") and round(float(o["time"]), 6) == t]
+def _partner_baseline(same_instant: list[dict], it: dict) -> float:
+    """Distance (m) from the item's camera to the nearest other camera among ``same_instant``
+    (the train items at its instant; 0: none)."""
+    others = [float((o["campos"] - it["campos"]).norm()) for o in same_instant if o.get("camera") != it.get("camera")]
     return min(others) if others else 0.0
 
 
@@ -277,6 +275,9 @@ def attach_stereo(items: list[dict], priors: list, *, planes: bool, min_pixels: 
     from ``priors`` (per item: (depth, mask) numpy or None; kept with at least ``min_pixels`` known),
     and with ``planes`` the local planes :func:`lie_flat` reads (``stereo_normal``, ``stereo_offset``),
     fitted where the pair's disparity is at least :data:`PLANE_MIN_DISPARITY` pixels."""
+    at: dict[float, list[dict]] = {}
+    for it in items:
+        at.setdefault(round(float(it["time"]), 6), []).append(it)
     for it, prior in zip(items, priors):
         if prior is None or int(prior[1].sum()) < min_pixels:
             continue
@@ -285,7 +286,8 @@ def attach_stereo(items: list[dict], priors: list, *, planes: bool, min_pixels: 
         it["stereo_depth"], it["stereo_mask"] = torch.from_numpy(d).to(dev), torch.from_numpy(ok).to(dev)
         if planes:
             K = it["K"][0].cpu().numpy()
-            near = ok & (d <= float(K[0, 0]) * _partner_baseline(items, it) / PLANE_MIN_DISPARITY)
+            baseline = _partner_baseline(at[round(float(it["time"]), 6)], it)
+            near = ok & (d <= float(K[0, 0]) * baseline / PLANE_MIN_DISPARITY)
             n, off = world_planes(d, near, K, it["viewmat"][0].cpu().numpy())
             it["stereo_normal"], it["stereo_offset"] = torch.from_numpy(n).to(dev), torch.from_numpy(off).to(dev)
 
