@@ -248,3 +248,39 @@ def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_cap
     bend, size = bends(tmp_path / "cut")
     assert ((bend > 0) & (bend < size[:, None])).any()
     assert "quiet_curves" not in json.loads((tmp_path / "cut" / "run.json").read_text())
+
+
+@pytest.mark.slow
+def test_between_frame_renders_leave_still_gaussians_alone(demo_capture, monkeypatch):
+    """A real between-frame render of a guided demo run: the Gaussians the spike view saw still over
+    the render's interval (quiet there) get no gradient from it, in any attribute; the others do.
+    Without the rule the still ones get one too (the spike loss repainted them: issue 47)."""
+    from engine.io.capture import load_capture
+    from engine.train.guidance.spike_guidance import SpikeGuidance
+    from engine.train.loop.trainer import Trainer
+    from engine.train.losses.terms import StepContext
+
+    tr = Trainer(load_capture(demo_capture), get_preset("fast", _TINY), device="cpu")
+    tr.init_model()
+    for step in range(_TINY["iterations"]):
+        tr.step(step)
+    g, step = tr.model.gaussians, _TINY["iterations"]
+
+    def between_grads():
+        ctx = StepContext(tr.run, step, "deform", tr.items[0], None, None, {}, {})
+        b = tr.spike_guidance.between(ctx)
+        assert b is not None and b["camera"] == tr.spike_guidance.colocated
+        g.optimizer.zero_grad(set_to_none=True)
+        b["rgb"].sum().backward()
+        still = tr.quiet_curves.still_at(tr.model, step, b["instant"].time)
+        grads = torch.cat([p.grad.reshape(p.shape[0], -1).abs() for p in (g.means, g.sh_dc, g.opacity_logits,
+                                                                         g.log_scales, g.quats)], 1).amax(1)
+        return still, grads
+
+    still, grads = between_grads()
+    assert 0.05 < float(still.float().mean()) < 0.95
+    assert float(grads[still].max()) == 0.0
+    assert int((grads[~still] > 0).sum()) > 0
+    monkeypatch.setattr(SpikeGuidance, "trainable_between", staticmethod(lambda ctx, t: None))
+    still, grads = between_grads()
+    assert int((grads[still] > 0).sum()) > 0

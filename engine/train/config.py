@@ -115,7 +115,7 @@ class SpikeConfig:
     static_prior: bool = True         # Gaussians where the spike view never changes skip the HexPlane field
     skip_static: bool = True          # no between-frame renders in spike windows without change
     fine_change_gate: bool = True     # fine feature only where / when the spike view changes
-    quiet_curves: bool = True         # curves hold their in-between bends at zero where the spike view saw no change
+    quiet_curves: bool = True         # where the spike view saw no change: no in-between bend, no between-frame grad
 
 
 @dataclass

@@ -27,6 +27,13 @@ Gaussian count changes and every ``REFRESH`` steps (junctions move slowly).
 Holding the junctions joined by quiet segments at their mean as well (quiet junctions) was
 measured and dropped (docs/experiments/quiet-curves.md).
 
+Still Gaussians between frames (issue 47): the Gaussians quiet over an interval take no gradient
+from the between-frame renders in it either (:meth:`QuietCurves.still_at`, read by
+``SpikeGuidance.trainable_between``): held curves alone left their colours, shapes and places to the
+spike loss, whose count noise and sensor mismatch at one greyscale viewpoint repainted the static
+world (on random scenes static pixels 0.2-0.4 dB under RGB-only; the spike loss off recovered them).
+docs/experiments/still-gaussians-between-frames.md has the figures.
+
 Rotation bends (issue 47): where the spike view changed, the spike terms bend the rotation
 curves as well as the positions. The greyscale spike view places a surface; it cannot say how
 a Gaussian turns, and the rotation bends are not motion the eval camera can use: set to zero
@@ -60,6 +67,7 @@ import numpy as np
 import torch
 
 from ...numba_cache import LazyKernels
+from ...scene import trajectory as traj
 from ...scene.fine_deformation import project_to_grid
 from ...scene.model import TRAJ_MEANS, TRAJ_QUATS
 from .spike_guidance import CHANGE_BLOCK, spike_stream_info
@@ -227,6 +235,15 @@ class QuietCurves:
             self._mask = hit = (step, params.shape[0], quiet, {}, id(params))
             self.last = {"step": int(step), "quiet_fraction": float(quiet.float().mean()) if quiet.numel() else 0.0}
         return hit[2]
+
+    def still_at(self, model, step: int, t: float) -> torch.Tensor | None:
+        """bool [N]: the Gaussians whose curve segment holding time ``t`` is quiet (the spike view saw
+        them still over that interval; :meth:`mask`), or None (no curves, or ``t`` outside them)."""
+        if model is None or model.trajectory is None or not model.use_deformation:
+            return None
+        quiet = self.mask(model, step)
+        k, _ = traj.segment_of(model.trajectory["knots"], t)
+        return quiet[:, k] if 0 <= k < quiet.shape[1] else None
 
     def __call__(self, tr, step, item, meta) -> None:
         model = tr.model

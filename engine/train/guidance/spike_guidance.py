@@ -329,10 +329,22 @@ class SpikeGuidance:
         vt = scaled_view(item, float(self.cfg.spike.between_scale))
         vt["time"] = inst.time
         scale = vt["width"] / item["width"]
-        rgb, alpha, meta, attrs = ctx.run.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH)
+        rgb, alpha, meta, attrs = ctx.run.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
+                                                       grad_rows=self.trainable_between(ctx, inst.time))
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta}
         ctx.__dict__["_between"] = out
         return out
+
+    @staticmethod
+    def trainable_between(ctx, t: float) -> torch.Tensor | None:
+        """bool [N]: the Gaussians a between-frame render at ``t`` may train; None: all. Not those the
+        spike view saw still over the interval holding ``t`` (their curves are quiet,
+        :meth:`QuietCurves.still_at`): the RGB frames place and colour what does not move, and the
+        spike loss's noise and sensor mismatch at one greyscale viewpoint repainted it
+        (docs/experiments/still-gaussians-between-frames.md)."""
+        quiet = ctx.run.part("quiet_curves")
+        still = quiet.still_at(ctx.run.model, ctx.step, t) if quiet is not None else None
+        return None if still is None else ~still
 
     def colocated_between(self, ctx) -> dict | None:
         """This step's between-frame render (:meth:`between`) when it was made at the spike
