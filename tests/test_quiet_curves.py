@@ -272,7 +272,7 @@ def test_between_frame_renders_leave_still_gaussians_alone(demo_capture, monkeyp
         assert b is not None and b["camera"] == tr.spike_guidance.colocated
         g.optimizer.zero_grad(set_to_none=True)
         b["rgb"].sum().backward()
-        still = tr.quiet_curves.still_at(tr.model, step, b["instant"].time)
+        still = tr.quiet_curves.still_at(tr.model, b["instant"].time)
         grads = torch.cat([p.grad.reshape(p.shape[0], -1).abs() for p in (g.means, g.sh_dc, g.opacity_logits,
                                                                          g.log_scales, g.quats)], 1).amax(1)
         return still, grads

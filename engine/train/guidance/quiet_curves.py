@@ -228,20 +228,31 @@ class QuietCurves:
         refresh = max(1, int(REFRESH))
         if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= refresh or step < hit[0]
                 or hit[4] != id(params)):
-            dev = params.device
-            quiet = quiet_segments(g.means.detach(), params.detach()[:, 0::3], self.change,
-                                   self.intervals(model.trajectory["knots"]), self.viewmat.to(dev),
-                                   self.K.to(dev), *self.size, dilate=int(DILATE))
+            quiet = self._quiet(model)
             self._mask = hit = (step, params.shape[0], quiet, {}, id(params))
             self.last = {"step": int(step), "quiet_fraction": float(quiet.float().mean()) if quiet.numel() else 0.0}
         return hit[2]
 
-    def still_at(self, model, step: int, t: float) -> torch.Tensor | None:
+    def _quiet(self, model) -> torch.Tensor:
+        """:func:`quiet_segments` of ``model``'s Gaussians and curves as they are now."""
+        g = model.gaussians
+        params = getattr(g, TRAJ_MEANS)
+        dev = params.device
+        return quiet_segments(g.means.detach(), params.detach()[:, 0::3], self.change,
+                              self.intervals(model.trajectory["knots"]), self.viewmat.to(dev),
+                              self.K.to(dev), *self.size, dilate=int(DILATE))
+
+    def still_at(self, model, t: float) -> torch.Tensor | None:
         """bool [N]: the Gaussians whose curve segment holding time ``t`` is quiet (the spike view saw
-        them still over that interval; :meth:`mask`), or None (no curves, or ``t`` outside them)."""
+        them still over that interval), or None (no curves). The mask the last step's hook applied while
+        it fits the curves; after the Gaussian count changed, one computed for this render alone: the
+        run's mask is replaced only by the hook, which zeroes what it calls quiet before a render reads it."""
         if model is None or model.trajectory is None or not model.use_deformation:
             return None
-        quiet = self.mask(model, step)
+        hit = self._mask
+        params = getattr(model.gaussians, TRAJ_MEANS)
+        fits = hit is not None and hit[1] == params.shape[0] and hit[4] == id(params)
+        quiet = hit[2] if fits else self._quiet(model)
         k, _ = traj.segment_of(model.trajectory["knots"], t)
         return quiet[:, k] if 0 <= k < quiet.shape[1] else None
 

@@ -343,7 +343,7 @@ class SpikeGuidance:
         spike loss's noise and sensor mismatch at one greyscale viewpoint repainted it
         (docs/experiments/still-gaussians-between-frames.md)."""
         quiet = ctx.run.part("quiet_curves")
-        still = quiet.still_at(ctx.run.model, ctx.step, t) if quiet is not None else None
+        still = quiet.still_at(ctx.run.model, t) if quiet is not None else None
         return None if still is None else ~still
 
     def colocated_between(self, ctx) -> dict | None:
