@@ -281,6 +281,13 @@ def test_between_frame_renders_leave_still_gaussians_alone(demo_capture, monkeyp
     assert 0.05 < float(still.float().mean()) < 0.95
     assert float(grads[still].max()) == 0.0
     assert int((grads[~still] > 0).sum()) > 0
+    # right after the count changed the run's mask no longer fits: the render computes its own and
+    # leaves the run's to the hook (which zeroes what it calls quiet before a render reads it)
+    stale = tr.quiet_curves._mask = (0, -1, torch.zeros(0, 0, dtype=torch.bool), {}, 0)
+    t = 0.5 * sum(tr.model.trajectory["knots"][:2])
+    fresh = tr.quiet_curves.still_at(tr.model, t)
+    assert tr.quiet_curves._mask is stale
+    assert torch.equal(fresh, tr.quiet_curves.mask(tr.model, step)[:, 0])
     monkeypatch.setattr(SpikeGuidance, "trainable_between", staticmethod(lambda ctx, t: None))
     still, grads = between_grads()
     assert int((grads[still] > 0).sum()) > 0
