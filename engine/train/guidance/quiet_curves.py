@@ -224,14 +224,18 @@ class QuietCurves:
         g = model.gaussians
         params = getattr(g, TRAJ_MEANS)
         hit = self._mask
-        # keyed on the curves' tensor too: the budget probe steps a copy of the model through this hook
         refresh = max(1, int(REFRESH))
-        if (hit is None or hit[1] != params.shape[0] or step - hit[0] >= refresh or step < hit[0]
-                or hit[4] != id(params)):
+        if not self._fits(params) or step - hit[0] >= refresh or step < hit[0]:
             quiet = self._quiet(model)
             self._mask = hit = (step, params.shape[0], quiet, {}, id(params))
             self.last = {"step": int(step), "quiet_fraction": float(quiet.float().mean()) if quiet.numel() else 0.0}
         return hit[2]
+
+    def _fits(self, params: torch.Tensor) -> bool:
+        """Whether the stored mask belongs to these curves (``TRAJ_MEANS``): the same Gaussian count
+        and the same tensor (the budget probe steps a copy of the model through this hook)."""
+        hit = self._mask
+        return hit is not None and hit[1] == params.shape[0] and hit[4] == id(params)
 
     def _quiet(self, model) -> torch.Tensor:
         """:func:`quiet_segments` of ``model``'s Gaussians and curves as they are now."""
@@ -249,10 +253,7 @@ class QuietCurves:
         run's mask is replaced only by the hook, which zeroes what it calls quiet before a render reads it."""
         if model is None or model.trajectory is None or not model.use_deformation:
             return None
-        hit = self._mask
-        params = getattr(model.gaussians, TRAJ_MEANS)
-        fits = hit is not None and hit[1] == params.shape[0] and hit[4] == id(params)
-        quiet = hit[2] if fits else self._quiet(model)
+        quiet = self._mask[2] if self._fits(getattr(model.gaussians, TRAJ_MEANS)) else self._quiet(model)
         k, _ = traj.segment_of(model.trajectory["knots"], t)
         return quiet[:, k] if 0 <= k < quiet.shape[1] else None
 
@@ -276,8 +277,7 @@ class QuietCurves:
     def after_settle(self, g) -> None:
         """A lazy optimiser's settle moved every column (the skipped steps' momentum): hold the
         quiet segments at zero again before anyone reads them (a checkpoint, densification)."""
-        hit = self._mask
-        if hit is not None and hit[1] == g.num_gaussians and hit[4] == id(getattr(g, TRAJ_MEANS)):
+        if self._fits(getattr(g, TRAJ_MEANS)):
             self._apply(g, local=False)
 
     def after_catch_up(self, params: torch.Tensor, cols) -> None:
