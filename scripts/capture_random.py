@@ -14,6 +14,14 @@ Judging a change on scenes nobody tuned on needs scenes nobody built by hand. ``
 * the sensor's noise, as a real Vidar camera shows it: gain non-uniformity 2-5 %, dark current
   0.001-0.01 and shot noise of 200-1000 photons per threshold.
 
+Those sweeps are smooth: a 30 FPS camera samples them well enough that a model of the RGB frames
+alone interpolates them (issue 47: RGB-only lost 0-1.5 dB on moving pixels half-way between RGB
+instants). ``configure(seed, motion="between")`` (``--preset random_between``) keeps the same draw
+and adds, from a stream of its own, motion that 30 FPS cannot sample -- what a spike camera is
+for: each object bounces on the floor (impacts 1.5-3 RGB intervals apart, anywhere in an interval,
+arcs 6-15 % of the distance high), vibrates along its heading at 10-25 Hz (3-6 % of the distance),
+or keeps its smooth sweep; at least one object does not.
+
 :func:`configure` must be called first (make_capture does it); it returns the capture settings
 the seed chose (sizes, sensor noise) and records the whole draw in ``PARAMS``.
 """
@@ -33,12 +41,13 @@ PARAMS: dict = {}
 
 RGB_SIZES = ((160, 120), (240, 180), (320, 240))
 TEXTURES = ("bricks", "checker", "noise", "weak")
+MOTIONS = ("smooth", "between")  # configure's motion: the sweeps alone, or bounces and vibrations added
 
 
-def configure(seed: int) -> dict:
+def configure(seed: int, motion: str = "smooth") -> dict:
     """Draw the scene of ``seed`` into this module (``TARGET``, ``CAMERA_EYES``, ``EVAL0_ANGLES``,
-    ``MOVING``, ``PARAMS``) and return its capture settings (``rgb_size``, ``spike_size`` and the
-    sensor's ``gain_std``, ``dark_current``, ``photons_per_threshold``)."""
+    ``MOVING``, ``PARAMS``; ``motion``: one of ``MOTIONS``) and return its capture settings
+    (``rgb_size``, ``spike_size`` and the sensor's ``gain_std``, ``dark_current``, ``photons_per_threshold``)."""
     global TARGET, CAMERA_EYES, EVAL0_ANGLES, MOVING, PARAMS
     rng = np.random.default_rng([int(seed), 48])
     d = float(rng.uniform(0.8, 3.0))
@@ -65,6 +74,10 @@ def configure(seed: int) -> dict:
     props = [{"name": f"prop{i}", "kind": str(rng.choice(("cube", "ball"))), "size": float(rng.uniform(0.06, 0.2)) * d,
               "at": (float(rng.uniform(-0.6, 0.6)) * d, float(rng.uniform(0.1, 0.4)) * d),
               "texture": _texture_draw(rng, strong=True)} for i in range(int(rng.integers(0, 3)))]
+    if motion not in MOTIONS:
+        raise ValueError(f"motion must be one of {MOTIONS}, not {motion!r}")
+    if motion == "between":
+        _draw_unsampled_motion(np.random.default_rng([int(seed), 49]), objects, d)
     MOVING = tuple(o["name"] for o in objects)
     w, hh = RGB_SIZES[int(rng.integers(len(RGB_SIZES)))]
     # the spike sensor at half or a quarter of the RGB size, whole bytes per frame (Vidar's layout)
@@ -81,6 +94,23 @@ def configure(seed: int) -> dict:
             "photons_per_threshold": float(rng.uniform(200.0, 1000.0))}
 
 
+def _draw_unsampled_motion(rng, objects: list, d: float) -> None:
+    """Give each object a motion 30 FPS cannot sample (``motion`` and its parameters), from its own
+    random stream so the rest of the seed's draw stays as ``motion="smooth"`` draws it."""
+    kinds = [str(rng.choice(("bounce", "vibrate", "smooth"), p=(0.4, 0.4, 0.2))) for _ in objects]
+    if all(k == "smooth" for k in kinds):
+        kinds[int(rng.integers(len(kinds)))] = str(rng.choice(("bounce", "vibrate")))
+    for o, kind in zip(objects, kinds):
+        o["motion"] = kind
+        if kind == "bounce":  # impacts period_s apart, the first at first_impact_s: |sin| arcs on the floor
+            o["period_s"] = float(rng.uniform(1.5, 3.0)) / 30.0
+            o["first_impact_s"] = float(rng.uniform(0.0, 1.0)) / 30.0
+            o["height"] = float(rng.uniform(0.06, 0.15)) * d
+        elif kind == "vibrate":
+            o["vibration_hz"] = float(rng.uniform(10.0, 25.0))
+            o["vibration_amp"] = float(rng.uniform(0.03, 0.06)) * d
+
+
 def _texture_draw(rng, strong: bool) -> dict:
     kind = str(rng.choice(TEXTURES[:3])) if strong else "weak"
     return {"kind": kind, "scale": float(rng.uniform(3.0, 12.0)),
@@ -94,7 +124,13 @@ def object_poses(t: float, speed: float = 1.0) -> dict:
     for o in PARAMS.get("objects", ()):
         s = o["sweep"] * math.sin(o["omega"] * t + o["phase"])
         cx, cy, cz = o["centre"]
-        loc = (cx + s * o["heading"][0], cy + s * o["heading"][1], cz + o["bob"] * math.cos(1.3 * o["omega"] * t))
+        z = cz + o["bob"] * math.cos(1.3 * o["omega"] * t)
+        kind = o.get("motion", "smooth")
+        if kind == "vibrate":
+            s += o["vibration_amp"] * math.sin(2.0 * math.pi * o["vibration_hz"] * t)
+        elif kind == "bounce":  # resting on the floor at each impact (the object's half size above it)
+            z = 0.5 * o["size"] + o["height"] * abs(math.sin(math.pi * (t - o["first_impact_s"]) / o["period_s"]))
+        loc = (cx + s * o["heading"][0], cy + s * o["heading"][1], z)
         out[o["name"]] = (loc, tuple(w * t for w in o["spin"]))
     return out
 

@@ -12,7 +12,9 @@ ball, a bobbing torus; ``novel`` (``--preset novel``, ``capture_novel.py``): the
 novel-view benchmark (weakly-textured floor, textured wall, thin parts, a fast ball, a
 turntable with letters) with eval cameras 10-30 deg off the pair (``--eval-angles``);
 ``random`` (``--preset random --seed N``, ``capture_random.py``): a new set, rig (0.8-3 m,
-baselines 0.08-0.35 m), objects, motion, light, camera sizes and sensor noise for every seed.
+baselines 0.08-0.35 m), objects, motion, light, camera sizes and sensor noise for every seed;
+``random_between`` (``--preset random_between --seed N``): the same draw with bounces and
+vibrations added, motion 30 FPS cannot sample (what the spike camera is for).
 
 Ground truth (``capture_truth.py``): ``--depth`` writes planar depth for every rendered
 view (``depth_file_path``); every capture gets ``ground_truth.objects`` (each moving
@@ -90,6 +92,10 @@ PRESETS = {
     # the scenes to judge a change on that nobody tuned on
     "random": dict(seconds=0.3, eval_fps=120.0, samples=16, light_hz=1000.0, scene="random",
                    eval_angles="side20,up20", extra_eval_fps=60.0, depth=True),
+    # the same draw with motion 30 FPS cannot sample added (bounces, vibrations; capture_random.py):
+    # random scenes on which a spike camera can pay between the RGB instants (issue 47)
+    "random_between": dict(seconds=0.3, eval_fps=120.0, samples=16, light_hz=1000.0, scene="random",
+                           motion="between", eval_angles="side20,up20", extra_eval_fps=60.0, depth=True),
 }
 # keys that do not change the spike light (kept out of the --light-cache key)
 _NOT_LIGHT = ("eval_angles", "extra_eval_fps", "depth", "gain_std", "dark_current", "photons_per_threshold")
@@ -390,7 +396,7 @@ def main(argv=None) -> int:
 
     cfg = dict(PRESETS[args.preset])
     if cfg.get("scene") == "random":  # the seed draws the scene, its camera sizes and its sensor noise
-        cfg.update(capture_random.configure(args.seed))
+        cfg.update(capture_random.configure(args.seed, cfg.get("motion", "smooth")))
     cfg.setdefault("gain_std", GAIN_STD)
     cfg.setdefault("dark_current", DARK_CURRENT)
     cfg.setdefault("photons_per_threshold", PHOTONS_PER_THRESHOLD)

@@ -54,20 +54,58 @@ def test_objects_move_between_rgb_instants():
     assert max(moved) > 0.0 and make_capture.SCENES["random"] is capture_random
 
 
+def _midpoint_miss(poses_at, t0: float, name: str) -> float:
+    """How far an object is, half-way between two RGB instants, from the straight line between its
+    places at them: what a 30 FPS camera cannot see (metres)."""
+    a, m, b = (np.array(poses_at(t)[name][0]) for t in (t0, t0 + 1 / 60, t0 + 1 / 30))
+    return float(np.linalg.norm(m - 0.5 * (a + b)))
+
+
+def test_between_motion_adds_what_30_fps_cannot_sample_to_the_same_draw():
+    for seed in range(60):
+        smooth = capture_random.configure(seed)
+        p_smooth = json.loads(json.dumps(capture_random.PARAMS))
+        smooth_miss = {o["name"]: max(_midpoint_miss(capture_random.object_poses, k / 30, o["name"]) for k in range(9))
+                       for o in p_smooth["objects"]}
+        assert capture_random.configure(seed, "between") == smooth  # sizes and sensor as drawn
+        p = capture_random.PARAMS
+        d = p["distance"]
+        kinds = [o["motion"] for o in p["objects"]]
+        assert set(kinds) <= {"bounce", "vibrate", "smooth"} and set(kinds) != {"smooth"}
+        added = ("motion", "period_s", "first_impact_s", "height", "vibration_hz", "vibration_amp")
+        kept = [{k: v for k, v in o.items() if k not in added} for o in p["objects"]]
+        assert json.loads(json.dumps(kept)) == p_smooth["objects"]
+        for o in p["objects"]:
+            miss = max(_midpoint_miss(capture_random.object_poses, k / 30, o["name"]) for k in range(9))
+            if o["motion"] == "bounce":  # on the floor at every impact, never below it
+                hit = capture_random.object_poses(o["first_impact_s"] + 2 * o["period_s"])[o["name"]][0]
+                assert hit[2] == pytest.approx(0.5 * o["size"], abs=1e-9)
+                lowest = min(capture_random.object_poses(k / 600)[o["name"]][0][2] for k in range(180))
+                assert lowest >= 0.5 * o["size"] - 1e-9
+            if o["motion"] != "smooth":  # far off the RGB frames' straight line at some midpoint
+                assert miss > 0.005 * d and miss > 2 * smooth_miss[o["name"]], (seed, o)
+    with pytest.raises(ValueError, match="motion"):
+        capture_random.configure(1, "fast")
+
+
 @pytest.mark.slow
-def test_a_random_capture_renders_loads_and_records_its_draw(tmp_path):
+@pytest.mark.parametrize("preset", ["random", "random_between"])
+def test_a_random_capture_renders_loads_and_records_its_draw(tmp_path, preset):
     from engine.io.capture import load_capture
 
     out = tmp_path / "cap"
-    cmd = [sys.executable, str(REPO_ROOT / "scripts" / "make_capture.py"), "--out", str(out), "--preset", "random",
+    cmd = [sys.executable, str(REPO_ROOT / "scripts" / "make_capture.py"), "--out", str(out), "--preset", preset,
            "--seed", "5", "--seconds", "0.04", "--rgb-size", "48x36", "--spike-size", "24x18", "--eval-fps", "60",
            "--extra-eval-fps", "30", "--samples", "2", "--light-hz", "250", "--no-depth"]
     proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-4000:]
     cap = load_capture(out)
     tj = json.loads((out / "transforms.json").read_text())
-    drawn = capture_random.configure(5)
+    drawn = capture_random.configure(5, "between" if preset == "random_between" else "smooth")
     assert tj["generator"]["random"]["distance"] == pytest.approx(capture_random.PARAMS["distance"])
+    motions = [o.get("motion", "smooth") for o in tj["generator"]["random"]["objects"]]
+    assert motions == [o.get("motion", "smooth") for o in capture_random.PARAMS["objects"]]
+    assert (set(motions) == {"smooth"}) == (preset == "random")
     sim = tj["spike_streams"][0]["sim"]
     assert sim["gain_std"] == pytest.approx(drawn["gain_std"]) and sim["dark_current"] == pytest.approx(
         drawn["dark_current"])
