@@ -49,6 +49,8 @@ def configure(seed: int, motion: str = "smooth") -> dict:
     ``MOVING``, ``PARAMS``; ``motion``: one of ``MOTIONS``) and return its capture settings
     (``rgb_size``, ``spike_size`` and the sensor's ``gain_std``, ``dark_current``, ``photons_per_threshold``)."""
     global TARGET, CAMERA_EYES, EVAL0_ANGLES, MOVING, PARAMS
+    if motion not in MOTIONS:  # before any of the module's scene is replaced
+        raise ValueError(f"motion must be one of {MOTIONS}, not {motion!r}")
     rng = np.random.default_rng([int(seed), 48])
     d = float(rng.uniform(0.8, 3.0))
     base = float(min(rng.uniform(0.08, 0.35), d / 3.0))
@@ -74,8 +76,6 @@ def configure(seed: int, motion: str = "smooth") -> dict:
     props = [{"name": f"prop{i}", "kind": str(rng.choice(("cube", "ball"))), "size": float(rng.uniform(0.06, 0.2)) * d,
               "at": (float(rng.uniform(-0.6, 0.6)) * d, float(rng.uniform(0.1, 0.4)) * d),
               "texture": _texture_draw(rng, strong=True)} for i in range(int(rng.integers(0, 3)))]
-    if motion not in MOTIONS:
-        raise ValueError(f"motion must be one of {MOTIONS}, not {motion!r}")
     if motion == "between":
         _draw_unsampled_motion(np.random.default_rng([int(seed), 49]), objects, d)
     MOVING = tuple(o["name"] for o in objects)

@@ -84,8 +84,10 @@ def test_between_motion_adds_what_30_fps_cannot_sample_to_the_same_draw():
                 assert lowest >= 0.5 * o["size"] - 1e-9
             if o["motion"] != "smooth":  # far off the RGB frames' straight line at some midpoint
                 assert miss > 0.005 * d and miss > 2 * smooth_miss[o["name"]], (seed, o)
+    before = json.dumps(capture_random.PARAMS, sort_keys=True), capture_random.CAMERA_EYES
     with pytest.raises(ValueError, match="motion"):
         capture_random.configure(1, "fast")
+    assert (json.dumps(capture_random.PARAMS, sort_keys=True), capture_random.CAMERA_EYES) == before
 
 
 @pytest.mark.slow

@@ -248,9 +248,10 @@ class QuietCurves:
 
     def still_at(self, model, t: float) -> torch.Tensor | None:
         """bool [N]: the Gaussians whose curve segment holding time ``t`` is quiet (the spike view saw
-        them still over that interval), or None (no curves). The mask the last step's hook applied while
-        it fits the curves; after the Gaussian count changed, one computed for this render alone: the
-        run's mask is replaced only by the hook, which zeroes what it calls quiet before a render reads it."""
+        them still over that interval), or None (no curves, or ``t`` outside them). The mask the last
+        step's hook applied while it fits the curves; after the Gaussian count changed, one computed for
+        this render alone: the run's mask is replaced only by the hook, which zeroes what it calls quiet
+        before a render reads it."""
         if model is None or model.trajectory is None or not model.use_deformation:
             return None
         quiet = self._mask[2] if self._fits(getattr(model.gaussians, TRAJ_MEANS)) else self._quiet(model)
