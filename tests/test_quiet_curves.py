@@ -253,7 +253,8 @@ def test_a_finished_run_keeps_no_rotation_bend_and_a_cancelled_one_does(demo_cap
 @pytest.mark.slow
 def test_between_frame_renders_leave_still_gaussians_alone(demo_capture, monkeypatch):
     """A real between-frame render of a guided demo run: the Gaussians the spike view saw still over
-    the render's interval (quiet there) get no gradient from it, in any attribute; the others do.
+    the render's interval (quiet there) get no gradient from it, in any attribute; the others do (into
+    their size, not the ratios of their scales).
     Without the rule the still ones get one too (the spike loss repainted them: issue 47)."""
     from engine.io.capture import load_capture
     from engine.train.guidance.spike_guidance import SpikeGuidance
@@ -275,6 +276,10 @@ def test_between_frame_renders_leave_still_gaussians_alone(demo_capture, monkeyp
         still = tr.quiet_curves.still_at(tr.model, b["instant"].time)
         grads = torch.cat([p.grad.reshape(p.shape[0], -1).abs() for p in (g.means, g.sh_dc, g.opacity_logits,
                                                                          g.log_scales, g.quats)], 1).amax(1)
+        # a size, not a shape: a row's three log-scales get one gradient (BETWEEN_GRAD_ATTRS)
+        ls = g.log_scales.grad
+        assert torch.allclose(ls[:, 0], ls[:, 1], rtol=1e-5, atol=1e-12) and bool((ls != 0).any())
+        assert torch.allclose(ls[:, 1], ls[:, 2], rtol=1e-5, atol=1e-12)
         return still, grads
 
     still, grads = between_grads()

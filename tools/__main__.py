@@ -34,6 +34,7 @@ DIAGNOSTICS = {
     "trajectory-error": "trajectory_error",  # moving objects' trajectory error against the generator's truth
     "spike-view-psnr": "spike_view_psnr",  # a run scored at the spike camera against the rendered light
     "orbit-strip": "orbit_strip",          # the +-30 degree orbit picture of docs/orbit_demo.png
+    "static-error": "static_error",        # static pixels lost in front of the true surface or on it
 }
 
 

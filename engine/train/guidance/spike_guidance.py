@@ -45,6 +45,12 @@ __all__ = ["SpikeGuidance", "admitted_time", "guidance_factory", "make_fine_enco
 # feature channels instead of 4, with the same colours and gradients bit for bit (issue 13;
 # tests/test_between_render.py). tools/bench-step's ``guided-main`` variant sets it back.
 BETWEEN_DEPTH = False
+# What a between-frame render trains (Model4D.render's grad_attrs): a Gaussian's size, not its shape (the
+# ratios of its scales). One greyscale view between RGB frames cannot tell a splat's extent along its own
+# ray; with the ratios trained, flat surface splats stood up in front of the static world at the eval
+# cameras; with no scale gradient at all a far set's floor kept its holes (issue 47;
+# docs/experiments/unsampled-motion-random-scenes.md, "Static pixels lost in front of the surface").
+BETWEEN_GRAD_ATTRS = ("means", "quats", "colors", "opacities", "size")
 
 LR_FINE = 1e-3           # learning rate of the fine branch
 CHANGE_BLOCK = 4         # block size (spike pixels) of the change maps
@@ -330,7 +336,8 @@ class SpikeGuidance:
         vt["time"] = inst.time
         scale = vt["width"] / item["width"]
         rgb, alpha, meta, attrs = ctx.run.model.render(vt, inst.time, render_depth=BETWEEN_DEPTH,
-                                                       grad_rows=self.trainable_between(ctx, inst.time))
+                                                       grad_rows=self.trainable_between(ctx, inst.time),
+                                                       grad_attrs=BETWEEN_GRAD_ATTRS)
         out = {"rgb": rgb, "camera": cam, "instant": inst, "scale": scale, "meta": meta}
         ctx.__dict__["_between"] = out
         return out
