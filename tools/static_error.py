@@ -57,37 +57,41 @@ class Accumulator:
         self.n[key] = self.n.get(key, 0) + int(mask.sum())
 
 
-def score(run, cap, classes_from=None, front: float = 0.05, keep_maps: bool = False):
-    """(Accumulator over ``run``'s static pixels split by the depth classes of ``classes_from``'s
-    renders (a list of per-frame class dicts, None: this run's own), the class dicts, per-camera
-    mean static error maps or None)."""
-    scene = load_run(run, device="cpu")
+def static_frames(cap) -> list[tuple]:
+    """(camera, frame, ground truth, static mask, "inst" | "between") per eval frame, each camera's in
+    time order: loaded once and scored for both runs."""
     rgb_times = sorted({float(f.time) for f in cap.frames})
-    acc, own, maps = Accumulator(), [], {}
-    by_cam: dict = {}
-    for f in cap.eval_frames:
-        by_cam.setdefault(f.camera, []).append(f)
-    i = 0
-    for cam, fs in by_cam.items():
-        fs = sorted(fs, key=lambda fr: fr.time)
+    eval_cams = {f.camera for f in cap.eval_frames}
+    out = []
+    for cam, fs in cap.frames_by_camera().items():
+        if cam not in eval_cams:
+            continue
         gts = [fr.load_rgb() for fr in fs]
         still = static_mask(gts)
-        for fr, gt in zip(fs, gts):
-            out = scene.render([cap.view(fr)])[0]
-            pred = np.asarray(out["rgb"], np.float64)[..., :3]
-            diff = pred - np.asarray(gt, np.float64)[..., :3]
-            err = (diff ** 2).mean(-1)
-            cls = depth_classes(out["depth"], fr.load_depth(), front) if classes_from is None else classes_from[i]
-            own.append(cls)
-            kind = "between" if is_interframe(float(fr.time), rgb_times) else "inst"
-            for c, m in cls.items():
-                acc.add((cam, kind, c), err, diff, m & still)
-            acc.add((cam, kind, "all"), err, diff, still)
-            if keep_maps:
-                s, k = maps.get(cam, (np.zeros_like(err), 0))
-                maps[cam] = (s + np.where(still, err, np.nan), k + 1)
-            i += 1
-    return acc, own, {c: s / k for c, (s, k) in maps.items()} if keep_maps else None
+        out += [(cam, fr, gt, still, "between" if is_interframe(float(fr.time), rgb_times) else "inst")
+                for fr, gt in zip(fs, gts)]
+    return out
+
+
+def score(run, cap, frames, classes=None, front: float = 0.05, keep_maps: bool = False):
+    """(Accumulator over ``run``'s static pixels of ``frames`` (:func:`static_frames`) split by depth
+    class, the class dicts per frame, per-camera mean static error maps or None). ``classes``: one
+    class dict per frame to use (another run's); None: this run's own, from its rendered depth."""
+    scene = load_run(run, device="cpu")
+    acc, used, maps = Accumulator(), [], {}
+    for i, (cam, fr, gt, still, kind) in enumerate(frames):
+        out = scene.render([cap.view(fr)])[0]
+        diff = np.asarray(out["rgb"], np.float64)[..., :3] - np.asarray(gt, np.float64)[..., :3]
+        err = (diff ** 2).mean(-1)
+        cls = depth_classes(out["depth"], fr.load_depth(), front) if classes is None else classes[i]
+        used.append(cls)
+        for c, m in cls.items():
+            acc.add((cam, kind, c), err, diff, m & still)
+        acc.add((cam, kind, "all"), err, diff, still)
+        if keep_maps:
+            s, k = maps.get(cam, (np.zeros_like(err), 0))
+            maps[cam] = (s + np.where(still, err, np.nan), k + 1)
+    return acc, used, {c: s / k for c, (s, k) in maps.items()} if keep_maps else None
 
 
 def psnr_of(acc: Accumulator, key) -> float:
@@ -158,8 +162,9 @@ def main(argv=None) -> None:
         where = missing[0].path if missing else args.capture
         raise SystemExit(str(CaptureError(where, "static-error needs eval frames with ground-truth depth "
                                                  "(make_capture.py --depth)")))
-    acc_b, classes, maps_b = score(args.run_b, cap, front=args.front, keep_maps=args.images is not None)
-    acc_a, _, maps_a = score(args.run_a, cap, classes_from=classes, keep_maps=args.images is not None)
+    frames = static_frames(cap)
+    acc_b, classes, maps_b = score(args.run_b, cap, frames, front=args.front, keep_maps=args.images is not None)
+    acc_a, _, maps_a = score(args.run_a, cap, frames, classes=classes, keep_maps=args.images is not None)
     print(f"A = {args.run_a}\nB = {args.run_b}\n{markdown(rows(acc_a, acc_b))}")
     if args.images is not None:
         for p in write_maps(maps_a, maps_b, args.images):
